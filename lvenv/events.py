@@ -1,0 +1,135 @@
+"""Valve-event detector and per-beat metrics (DESIGN §1.5), accumulated on the fly in ``lax.scan``.
+
+Valve conditions (kPa): mitral open while g_mv = P_at − P_lv > 0, aortic open while
+g_ao = P_lv − P_c > 0. An event is a sign change of g between two steps; its time and the volume
+there are found by linear interpolation between the steps (error O(h²), sub-step accurate).
+Within one beat (onset of the calcium transient at t = 0) the events are taken in cycle order:
+
+    t_mvc  first mitral closing (t = 0 if closed at onset)  EDV = V(t_mvc)
+    t_avo  first aortic opening after t_mvc
+    t_avc  first aortic closing after t_avo          ESV = V(t_avc)
+    t_mvo  first mitral opening after t_avc
+
+    IVCT = t_avo − t_mvc,  ET = t_avc − t_avo,  IVRT = t_mvo − t_avc,
+    filling_time = T − (t_mvo − t_mvc),  SV = EDV − ESV,  EF = SV / EDV,  CO = SV / T.
+
+Aortic pressures over the beat: systolic max, diastolic min, mean (trapezoidal time average),
+pulse = sys − dia; peak P_lv is the beat maximum. A beat without the full event sequence is
+marked invalid (its metrics are then masked by the caller).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["METRIC_NAMES", "Accumulator", "start", "update", "finish"]
+
+METRIC_NAMES = (
+    "EF", "EDV", "ESV", "SV", "IVCT", "ET", "IVRT", "filling_time",
+    "P_lv_peak", "P_ao_sys", "P_ao_dia", "P_ao_pulse", "P_ao_mean", "CO",
+)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Accumulator:
+    """Running record of one beat (per member). Times in s, volumes in ml, pressures in kPa."""
+
+    t: jax.Array
+    g_mv: jax.Array
+    g_ao: jax.Array
+    v: jax.Array
+    p_ao: jax.Array
+    t_mvc: jax.Array
+    v_mvc: jax.Array
+    t_avo: jax.Array
+    t_avc: jax.Array
+    v_avc: jax.Array
+    t_mvo: jax.Array
+    found: jax.Array  # number of events found so far, 0..4, in cycle order
+    p_lv_max: jax.Array
+    p_ao_max: jax.Array
+    p_ao_min: jax.Array
+    p_ao_integral: jax.Array
+
+
+def start(t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
+    """Open the record at the beat's onset. A mitral valve already closed there closes at t."""
+    zero = jnp.zeros_like(v)
+    closed = p_at - p_lv < 0.0
+    return Accumulator(
+        t=t + zero, g_mv=p_at - p_lv, g_ao=p_lv - p_c, v=v, p_ao=p_ao,
+        t_mvc=t + zero, v_mvc=jnp.where(closed, v, zero), t_avo=zero, t_avc=zero, v_avc=zero, t_mvo=zero,
+        found=jnp.where(closed, 1, 0).astype(jnp.int32),
+        p_lv_max=p_lv, p_ao_max=p_ao, p_ao_min=p_ao, p_ao_integral=zero,
+    )
+
+
+def _crossing(t0, t1, g0, g1, closing: bool):
+    """Whether g crosses zero downwards (closing) or upwards (opening), and the fraction of the step."""
+    hit = (g0 >= 0.0) & (g1 < 0.0) if closing else (g0 <= 0.0) & (g1 > 0.0)
+    denom = jnp.where(hit, g0 - g1, 1.0)
+    frac = jnp.clip(jnp.where(hit, g0 / denom, 0.0), 0.0, 1.0)
+    return hit, frac
+
+
+def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
+    """Fold the next step's sample into the beat record."""
+    g_mv, g_ao = p_at - p_lv, p_lv - p_c
+    dt = t - acc.t
+    lerp = lambda a, b, s: a + (b - a) * s
+
+    mvc, f_mvc = _crossing(acc.t, t, acc.g_mv, g_mv, closing=True)
+    avo, f_avo = _crossing(acc.t, t, acc.g_ao, g_ao, closing=False)
+    avc, f_avc = _crossing(acc.t, t, acc.g_ao, g_ao, closing=True)
+    mvo, f_mvo = _crossing(acc.t, t, acc.g_mv, g_mv, closing=False)
+
+    take_mvc = mvc & (acc.found == 0)
+    found = jnp.where(take_mvc, 1, acc.found)
+    take_avo = avo & (found == 1)
+    found = jnp.where(take_avo, 2, found)
+    take_avc = avc & (found == 2)
+    found = jnp.where(take_avc, 3, found)
+    take_mvo = mvo & (found == 3)
+    found = jnp.where(take_mvo, 4, found)
+
+    return Accumulator(
+        t=t, g_mv=g_mv, g_ao=g_ao, v=v, p_ao=p_ao,
+        t_mvc=jnp.where(take_mvc, acc.t + f_mvc * dt, acc.t_mvc),
+        v_mvc=jnp.where(take_mvc, lerp(acc.v, v, f_mvc), acc.v_mvc),
+        t_avo=jnp.where(take_avo, acc.t + f_avo * dt, acc.t_avo),
+        t_avc=jnp.where(take_avc, acc.t + f_avc * dt, acc.t_avc),
+        v_avc=jnp.where(take_avc, lerp(acc.v, v, f_avc), acc.v_avc),
+        t_mvo=jnp.where(take_mvo, acc.t + f_mvo * dt, acc.t_mvo),
+        found=found,
+        p_lv_max=jnp.maximum(acc.p_lv_max, p_lv),
+        p_ao_max=jnp.maximum(acc.p_ao_max, p_ao),
+        p_ao_min=jnp.minimum(acc.p_ao_min, p_ao),
+        p_ao_integral=acc.p_ao_integral + 0.5 * dt * (acc.p_ao + p_ao),
+    )
+
+
+def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
+    """Metrics of the beat (internal units) and whether the full valve cycle was found."""
+    valid = acc.found == 4
+    sv = acc.v_mvc - acc.v_avc
+    metrics = {
+        "EF": sv / jnp.where(valid, acc.v_mvc, 1.0),
+        "EDV": acc.v_mvc,
+        "ESV": acc.v_avc,
+        "SV": sv,
+        "IVCT": acc.t_avo - acc.t_mvc,
+        "ET": acc.t_avc - acc.t_avo,
+        "IVRT": acc.t_mvo - acc.t_avc,
+        "filling_time": period - (acc.t_mvo - acc.t_mvc),
+        "P_lv_peak": acc.p_lv_max,
+        "P_ao_sys": acc.p_ao_max,
+        "P_ao_dia": acc.p_ao_min,
+        "P_ao_pulse": acc.p_ao_max - acc.p_ao_min,
+        "P_ao_mean": acc.p_ao_integral / period,
+        "CO": sv / period,
+    }
+    return metrics, valid

@@ -1,0 +1,238 @@
+"""Frozen, typed parameter containers of the LO heart, with documented ranges.
+
+Every numeric field is a PyTree leaf, so a *stacked* parameter set (leaves of shape ``(batch,)``)
+vmaps for free. Ranges live in the field metadata and are checked at the Python boundary by
+:func:`validate`, which names the field, the offending value and the allowed range.
+
+Units (DESIGN): kPa, ml, s, µM, mm.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Iterator, Sequence
+
+import jax
+import numpy as np
+
+from lvenv.geometry import Geometry, GeometryError, cavity_volume
+
+__all__ = ["LOParams", "CellParams", "Circulation", "Heart", "validate", "stack", "ranges", "field_names"]
+
+
+def _param(default: float, lo: float, hi: float, units: str, doc: str) -> Any:
+    return dataclasses.field(default=default, metadata={"range": (lo, hi), "units": units, "doc": doc})
+
+
+def _pytree(cls):
+    cls = dataclasses.dataclass(frozen=True)(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    return jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
+
+
+@_pytree
+class LOParams:
+    """The eight trained LO parameters (DESIGN §1, table; defaults: N geometry)."""
+
+    mu1: float = _param(0.191, 1e-3, 1.0, "1", "stretch map: λ = μ1 (V/V0 − 1) + 1")
+    mu2: float = _param(0.183, 1e-3, 2.0, "1", "pressure map: P = μ2 Ta + Ppass")
+    gamma: float = _param(4.97, 0.0, 50.0, "1", "compression stiffening factor of Ppass (x ≤ 0)")
+    alpha: float = _param(0.640, 0.0, 20.0, "kPa", "Ppass compression amplitude")
+    beta: float = _param(1.39, 0.0, 20.0, "1", "Ppass compression exponent")
+    a: float = _param(1.70, 0.0, 50.0, "kPa", "Ppass cubic coefficient")
+    b: float = _param(-1.41, -50.0, 50.0, "kPa", "Ppass quadratic coefficient")
+    c: float = _param(1.64, 1e-3, 50.0, "kPa", "Ppass linear coefficient")
+
+
+@_pytree
+class CellParams:
+    """Land et al. 2017 human myofilament model with the paper's named parameters (DESIGN §1.1).
+
+    Calcium-transient defaults are ours (README, "Cell defaults"): τ1 = 0.033 s, τ2 = 0.12 s,
+    Cmax = 2.3 µM with Land's cross-bridge rates (Vmax factor 1) keep the training beats
+    physiological and make human ejection and relaxation timing reachable.
+    """
+
+    Sa: float = _param(1.0, 0.05, 10.0, "1", "contraction efficiency (multiplies Tref)")
+    vmax_factor: float = _param(1.0, 0.1, 10.0, "1", "cross-bridge cycling speed (multiplies kuw, kws)")
+    n0: float = _param(0.7174, 0.3, 0.95, "1", "stretch below which no active force: h(n0) = 0")
+    nA: float = _param(5.0, 1.0, 10.0, "1", "Hill coefficient of cooperativity (nTm)")
+    tau1: float = _param(0.033, 1e-3, 0.3, "s", "Ca transient rise time constant")
+    tau2: float = _param(0.12, 0.01, 2.0, "s", "Ca transient decay time constant")
+    Cdia: float = _param(0.1, 0.0, 2.0, "µM", "diastolic [Ca]")
+    Cmax: float = _param(2.3, 0.05, 10.0, "µM", "peak systolic [Ca]")
+    Tref: float = _param(120.0, 1.0, 1000.0, "kPa", "reference tension")
+    Ca50ref: float = _param(0.805, 0.05, 10.0, "µM", "Ca50 at λ = 1")
+    beta1: float = _param(-2.4, -20.0, 20.0, "µM", "length dependence of Ca50")
+    nTRPN: float = _param(2.0, 0.5, 10.0, "1", "troponin Hill coefficient")
+    kTRPN: float = _param(100.0, 1.0, 1e4, "1/s", "troponin Ca binding rate")
+    TRPN50: float = _param(0.35, 0.01, 0.99, "1", "CaTRPN at half tropomyosin activation")
+    ku: float = _param(1000.0, 1.0, 1e5, "1/s", "tropomyosin unblocking rate")
+    rw: float = _param(0.5, 0.01, 0.99, "1", "steady-state fraction of weak cross-bridges")
+    rs: float = _param(0.25, 0.01, 0.99, "1", "steady-state fraction of strong cross-bridges")
+    gamma_s: float = _param(8.5, 0.0, 1e4, "1/s", "strong-bridge distortion detachment")
+    gamma_w: float = _param(615.0, 0.0, 1e5, "1/s", "weak-bridge distortion detachment")
+    phi: float = _param(2.23, 0.0, 100.0, "1", "distortion relaxation scaling")
+    Aeff: float = _param(25.0, 0.0, 1000.0, "1", "distortion per unit stretch rate")
+    kuw: float = _param(182.0, 1.0, 1e5, "1/s", "unbound → weak rate (before Vmax factor)")
+    kws: float = _param(12.0, 0.1, 1e5, "1/s", "weak → strong rate (before Vmax factor)")
+
+
+@_pytree
+class Circulation:
+    """Valves, Windkessel and atrium (DESIGN §1.2). ``closed_loop`` is 0 (constant Pat) or 1 (Cat).
+
+    Defaults (ours, README "Circulation defaults"): closed loop at 60 bpm; R2, R3, C and Cat
+    from the reachability search with C fixed in the human range (15 ml/kPa ≈ 2 ml/mmHg).
+    In the closed loop the conserved volume is V(0) + C Pc0 + Cat Pat (initial state).
+    """
+
+    R1: float = _param(0.0015, 1e-5, 1.0, "kPa·s/ml", "aortic valve resistance")
+    R2: float = _param(0.025, 0.0, 1.0, "kPa·s/ml", "proximal (characteristic) resistance")
+    R3: float = _param(0.22, 1e-3, 10.0, "kPa·s/ml", "peripheral resistance")
+    C: float = _param(15.0, 0.01, 200.0, "ml/kPa", "arterial compliance")
+    Rmv: float = _param(0.002, 1e-5, 1.0, "kPa·s/ml", "mitral valve resistance")
+    Pat: float = _param(1.0, 0.0, 10.0, "kPa", "atrial pressure (open loop) or its initial value (closed loop)")
+    Cat: float = _param(2.0, 0.1, 1000.0, "ml/kPa", "atrial compliance (closed loop)")
+    Pc0: float = _param(10.0, 0.0, 40.0, "kPa", "initial Windkessel capacitor pressure")
+    HR: float = _param(60.0, 20.0, 240.0, "1/min", "heart rate")
+    closed_loop: float = _param(1.0, 0.0, 1.0, "1", "0: open loop (constant Pat, venous side at 0 kPa); 1: closed loop")
+
+
+@dataclasses.dataclass(frozen=True)
+class Heart:
+    """One LO heart: unloaded geometry, trained LO maps, cell unit and circulation.
+
+    A *stacked* Heart (every leaf an array of shape ``(batch,)``) is a batch; build one with
+    :func:`stack`. ``V0`` is derived from ``geometry`` (:func:`lvenv.geometry.cavity_volume`).
+    """
+
+    geometry: Geometry
+    lo: LOParams = dataclasses.field(default_factory=LOParams)
+    cell: CellParams = dataclasses.field(default_factory=CellParams)
+    circulation: Circulation = dataclasses.field(default_factory=Circulation)
+
+    def replace(self, **changes: Any) -> "Heart":
+        """Return a copy with fields changed by name, e.g. ``heart.replace(tau2=0.2, R3=0.1)``.
+
+        Names are looked up in ``lo``, ``cell`` and ``circulation``; ``geometry``, ``lo``,
+        ``cell`` and ``circulation`` replace the whole part.
+        """
+        top = {k: changes.pop(k) for k in ("geometry", "lo", "cell", "circulation") if k in changes}
+        heart = dataclasses.replace(self, **top)
+        parts = {}
+        for part in ("lo", "cell", "circulation"):
+            obj = getattr(heart, part)
+            mine = {k: changes.pop(k) for k in list(changes) if k in {f.name for f in dataclasses.fields(obj)}}
+            if mine:
+                parts[part] = dataclasses.replace(obj, **mine)
+        if changes:
+            raise TypeError(f"unknown Heart parameter(s): {sorted(changes)}; known: {field_names()}")
+        return dataclasses.replace(heart, **parts)
+
+
+def _flatten_geometry(g: Geometry):
+    return [getattr(g, f.name) for f in dataclasses.fields(Geometry)], None
+
+
+def _unflatten_geometry(_, leaves):
+    g = object.__new__(Geometry)
+    for f, v in zip(dataclasses.fields(Geometry), leaves):
+        object.__setattr__(g, f.name, v)
+    return g
+
+
+jax.tree_util.register_pytree_node(Geometry, _flatten_geometry, _unflatten_geometry)
+jax.tree_util.register_dataclass(Heart, data_fields=["geometry", "lo", "cell", "circulation"], meta_fields=[])
+
+_PARTS = (("lo", LOParams), ("cell", CellParams), ("circulation", Circulation))
+
+
+def field_names() -> list[str]:
+    """All settable parameter names of :class:`Heart` (LO, cell and circulation)."""
+    return [f.name for _, cls in _PARTS for f in dataclasses.fields(cls)]
+
+
+def ranges() -> dict[str, tuple[float, float, str, str]]:
+    """``{name: (lo, hi, units, doc)}`` for every parameter with a documented range."""
+    out = {}
+    for _, cls in _PARTS:
+        for f in dataclasses.fields(cls):
+            lo, hi = f.metadata["range"]
+            out[f.name] = (lo, hi, f.metadata["units"], f.metadata["doc"])
+    return out
+
+
+def _iter_fields(heart: Heart) -> Iterator[tuple[str, str, np.ndarray, tuple[float, float], str]]:
+    for part, cls in _PARTS:
+        obj = getattr(heart, part)
+        for f in dataclasses.fields(cls):
+            yield part, f.name, np.asarray(getattr(obj, f.name), dtype=float), f.metadata["range"], f.metadata["units"]
+
+
+def _member(arr: np.ndarray, where: np.ndarray) -> str:
+    if arr.ndim == 0:
+        return ""
+    return f" (batch member {int(np.flatnonzero(where.ravel())[0])})"
+
+
+def validate(heart: Heart) -> None:
+    """Raise ``ValueError`` naming the field, value and allowed range of the first bad parameter.
+
+    Works on a single Heart or a stacked batch. Also checks the cross-field conditions
+    τ1 < τ2, Cdia < Cmax and that Ppass is monotone for x > 0 (b² < 3ac or b ≥ 0).
+    """
+    for part, name, arr, (lo, hi), units in _iter_fields(heart):
+        bad = ~np.isfinite(arr) | (arr < lo) | (arr > hi)
+        if np.any(bad):
+            value = float(arr.ravel()[np.flatnonzero(bad.ravel())[0]])
+            raise ValueError(f"{part}.{name} = {value:g} {units} is outside the allowed range [{lo:g}, {hi:g}]{_member(arr, bad)}")
+    cell, lo = heart.cell, heart.lo
+    tau1, tau2 = np.asarray(cell.tau1, float), np.asarray(cell.tau2, float)
+    if np.any(bad := tau1 >= tau2):
+        raise ValueError(f"cell.tau1 = {float(np.ravel(tau1)[np.flatnonzero(bad.ravel())[0]]):g} s must be below cell.tau2 (rise faster than decay){_member(tau1, bad)}")
+    cdia, cmax = np.asarray(cell.Cdia, float), np.asarray(cell.Cmax, float)
+    if np.any(bad := cdia >= cmax):
+        raise ValueError(f"cell.Cdia = {float(np.ravel(cdia)[np.flatnonzero(bad.ravel())[0]]):g} µM must be below cell.Cmax{_member(cdia, bad)}")
+    a, b, c = (np.asarray(v, float) for v in (lo.a, lo.b, lo.c))
+    if np.any(bad := (b < 0) & (b * b >= 3 * a * c)):
+        raise ValueError(f"lo.b = {float(np.ravel(b)[np.flatnonzero(bad.ravel())[0]]):g} kPa makes Ppass non-monotone for V > V0 (need b² < 3ac){_member(b, bad)}")
+    cavity_volumes(heart)
+
+
+def cavity_volumes(heart: Heart) -> np.ndarray:
+    """V0 (ml) of each member's geometry; validates every distinct geometry once."""
+    g = heart.geometry
+    rows = np.stack(np.broadcast_arrays(*(np.asarray(getattr(g, f.name), float) for f in dataclasses.fields(Geometry))), axis=-1)
+    flat = np.ascontiguousarray(rows.reshape(-1, rows.shape[-1]))
+    keys = flat.view(np.dtype((np.void, flat.dtype.itemsize * flat.shape[1]))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    unique = flat[first]
+    v0 = np.empty(len(unique))
+    for i, row in enumerate(unique):
+        try:
+            v0[i] = cavity_volume(Geometry(*row))
+        except GeometryError as err:
+            where = np.flatnonzero(inverse.ravel() == i)
+            suffix = f" (batch member {int(where[0])})" if rows.ndim > 1 else ""
+            raise GeometryError(f"{err}{suffix}") from None
+    return v0[inverse.ravel()].reshape(rows.shape[:-1])
+
+
+def stack(hearts: Sequence[Heart]) -> Heart:
+    """Stack a sequence of Hearts into one batched Heart (leaves of shape ``(len(hearts),)``)."""
+    if len(hearts) == 0:
+        raise ValueError("cannot stack an empty sequence of Hearts")
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x, dtype=float) for x in xs]), *hearts)
+
+
+def batch_size(heart: Heart) -> int | None:
+    """``None`` for a single Heart, else the common leading dimension of a stacked one."""
+    shapes = {np.shape(x) for x in jax.tree.leaves(heart)}
+    if shapes == {()}:
+        return None
+    dims = {s[0] if s else None for s in shapes}
+    dims.discard(None)
+    if len(dims) != 1 or any(len(s) > 1 for s in shapes):
+        raise ValueError(f"a stacked Heart needs every leaf of shape () or (batch,), got shapes {sorted(shapes)}")
+    return dims.pop()

@@ -1,0 +1,99 @@
+"""Benchmark the batched LO heart against the scipy Radau reference in the same run (JSON out).
+
+    python scripts/bench_lo.py                       # CPU: batches 1 … 16384
+    python scripts/bench_lo.py --batches 1024 65536 262144 1048576 --dtype float32   # GPU
+
+Reports beats/s (median of --repeats timed runs after one compile run) per batch size, the
+speed-up over a scipy ``solve_ivp(Radau, rtol=1e-8)`` loop on the same equations, and the
+metrics error of the batched model against that reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+import lvenv  # noqa: E402
+from lvenv import presets  # noqa: E402
+from lvenv.geometry import cavity_volume  # noqa: E402
+from tests.lvenv.reference_lo import simulate_reference  # noqa: E402
+
+BEATS = 2
+
+
+def cohort(n: int, seed: int = 0) -> lvenv.Heart:
+    """A stacked batch of n hearts alternating N / HF with randomised physiology."""
+    rng = np.random.default_rng(seed)
+    pair = lvenv.stack([presets.normal(), presets.heart_failure()])
+    tiled = jax.tree.map(lambda x: np.resize(x, n), pair)
+    return tiled.replace(tau2=rng.uniform(0.09, 0.25, n), Sa=rng.uniform(0.8, 1.5, n), R3=rng.uniform(0.12, 0.4, n), C=rng.uniform(6.0, 25.0, n), Cat=rng.uniform(1.5, 10.0, n))
+
+
+def time_batch(batch, steps, dtype, repeats):
+    run = lambda: lvenv.simulate(batch, beats=BEATS, steps_per_beat=steps, traces=False, dtype=dtype)
+    t0 = time.perf_counter()
+    first = run()
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = run()
+        times.append(time.perf_counter() - t0)
+    assert np.all(res.status == "ok"), np.unique(res.status, return_counts=True)
+    return first, compile_s, times
+
+
+def accuracy(hearts, steps, dtype):
+    res = lvenv.simulate(hearts, beats=BEATS, steps_per_beat=steps, dtype=dtype)
+    t0 = time.perf_counter()
+    refs = [simulate_reference(h, cavity_volume(h.geometry), beats=BEATS)[0] for h in hearts]
+    radau_s = time.perf_counter() - t0
+    err = {"EF_abs": 0.0, "timing_abs_s": 0.0, "pressure_rel": 0.0, "volume_rel": 0.0}
+    for i, ref in enumerate(refs):
+        m = res[i].metrics
+        err["EF_abs"] = max(err["EF_abs"], abs(m["EF"] - ref["EF"]))
+        err["timing_abs_s"] = max(err["timing_abs_s"], *(abs(m[k] - ref[k]) for k in ("IVCT", "ET", "IVRT")))
+        err["pressure_rel"] = max(err["pressure_rel"], *(abs(m[k] / ref[k] - 1) for k in ("P_lv_peak", "P_ao_sys", "P_ao_dia", "P_ao_mean")))
+        err["volume_rel"] = max(err["volume_rel"], *(abs(m[k] / ref[k] - 1) for k in ("EDV", "ESV")))
+    return err, len(hearts) * BEATS / radau_s
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 16, 256, 1024, 4096, 16384])
+    parser.add_argument("--steps", type=int, nargs="+", default=[1000, 500], help="ROS2 steps per beat (1000 is the default)")
+    parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--reference-members", type=int, default=4, help="members integrated by the Radau baseline")
+    args = parser.parse_args()
+    dtype = {"float64": jnp.float64, "float32": jnp.float32}[args.dtype]
+    out = {
+        "device": str(jax.devices()[0].device_kind), "n_devices": len(jax.devices()), "backend": jax.default_backend(),
+        "dtype": args.dtype, "beats_per_run": BEATS, "runs": [],
+    }
+    ref_batch = cohort(args.reference_members, seed=1)
+    ref_hearts = [jax.tree.map(lambda x, i=i: float(x[i]), ref_batch) for i in range(args.reference_members)]
+    for steps in args.steps:
+        err, radau_beats_per_s = accuracy(ref_hearts, steps, dtype)
+        entry = {"steps_per_beat": steps, "error_vs_radau": err, "radau_beats_per_s": radau_beats_per_s, "batches": []}
+        for n in args.batches:
+            _, compile_s, times = time_batch(cohort(n), steps, dtype, args.repeats)
+            bps = n * BEATS / float(np.median(times))
+            entry["batches"].append({"batch": n, "beats_per_s_median": bps, "speedup_vs_radau": bps / radau_beats_per_s, "times_s": times, "first_call_s": compile_s})
+            print(f"# steps {steps} batch {n}: {bps:,.0f} beats/s", file=sys.stderr, flush=True)
+        out["runs"].append(entry)
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,75 @@
+"""A batch equals its members; a poisoned member is flagged and leaves the others bit-identical."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import lvenv
+from lvenv import presets
+
+
+def cohort():
+    base = [presets.normal(), presets.heart_failure()]
+    return [base[i % 2].replace(tau2=0.1 + 0.02 * i, Sa=0.9 + 0.05 * i, R3=0.15 + 0.02 * i, HR=60 + 3 * i) for i in range(6)]
+
+
+def test_batch_equals_members_run_one_by_one():
+    hearts = cohort()
+    batch = lvenv.simulate(hearts, beats=3)
+    for i, heart in enumerate(hearts):
+        single = lvenv.simulate(heart, beats=3)
+        assert batch.status[i] == single.status
+        for key, value in single.metrics.items():
+            assert batch.metrics[key][i] == pytest.approx(value, rel=1e-12, abs=1e-12), key
+        np.testing.assert_allclose(batch.traces.V[i], single.traces.V, rtol=1e-12)
+
+
+def test_stacked_pytree_equals_sequence_and_geometry_may_differ():
+    hearts = cohort()
+    a = lvenv.simulate(hearts, beats=2)
+    b = lvenv.simulate(lvenv.stack(hearts), beats=2)
+    for key in a.metrics:
+        np.testing.assert_array_equal(a.metrics[key], b.metrics[key])
+    assert len({round(float(v), 6) for v in a.metrics["EDV"]}) == len(hearts)
+
+
+@pytest.mark.parametrize("poison, value, expected", [("nan", np.nan, "nonfinite"), ("huge_volume", 1e4, "diverged")])
+def test_poisoned_member_is_flagged_and_others_bit_identical(poison, value, expected):
+    hearts = cohort()
+    y0 = np.stack([lvenv.simulate(h, beats=1).final_state for h in hearts])
+    y_bad = y0.copy()
+    y_bad[2, 6] = value  # LV volume of member 2
+    clean = lvenv.simulate(hearts, initial_state=y0)
+    dirty = lvenv.simulate(hearts, initial_state=y_bad)
+    assert dirty.status[2] == expected
+    assert all(np.isfinite(v[2]) for v in dirty.metrics.values())
+    assert all(v[2] == 0.0 for v in dirty.metrics.values()), "failed member's metrics are masked"
+    others = [i for i in range(len(hearts)) if i != 2]
+    for key in clean.metrics:
+        np.testing.assert_array_equal(dirty.metrics[key][others], clean.metrics[key][others])
+    np.testing.assert_array_equal(dirty.final_state[others], clean.final_state[others])
+    np.testing.assert_array_equal(dirty.status[others], clean.status[others])
+
+
+def test_out_of_range_parameters_raise_naming_field_value_and_range():
+    with pytest.raises(ValueError, match=r"cell\.tau2 = 5 s is outside the allowed range \[0\.01, 2\]"):
+        lvenv.simulate(presets.normal().replace(tau2=5.0))
+    with pytest.raises(ValueError, match=r"circulation\.R3 = -1 .*\(batch member 1\)"):
+        lvenv.simulate([presets.normal(), presets.normal().replace(R3=-1.0)])
+    with pytest.raises(ValueError, match="tau1"):
+        lvenv.simulate(presets.normal().replace(tau1=0.3, tau2=0.2))
+    with pytest.raises(ValueError, match=r"geometry\.L"):
+        lvenv.simulate(dataclasses.replace(presets.normal(), geometry=lvenv.Geometry(30, 31, 50, 10, 0.7, -50)))
+    with pytest.raises(TypeError, match="unknown Heart parameter"):
+        presets.normal().replace(tau3=0.1)
+
+
+def test_float32_mode_runs_and_stays_close():
+    r64 = lvenv.simulate(presets.normal(), beats=2)
+    import jax.numpy as jnp
+
+    r32 = lvenv.simulate(presets.normal(), beats=2, dtype=jnp.float32)
+    assert r32.status == "ok"
+    assert r32.metrics["EF"] == pytest.approx(r64.metrics["EF"], abs=2e-3)
+    assert r32.metrics["P_ao_sys"] == pytest.approx(r64.metrics["P_ao_sys"], rel=5e-3)

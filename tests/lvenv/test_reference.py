@@ -1,0 +1,51 @@
+"""LO heart against an independent scipy Radau (rtol 1e-8) reference on random parameter sets."""
+
+import numpy as np
+import pytest
+
+import lvenv
+from lvenv import presets
+from lvenv.geometry import cavity_volume
+from tests.lvenv.reference_lo import simulate_reference
+
+N_SETS = 5
+
+
+def random_hearts(seed, closed_loop):
+    rng = np.random.default_rng(seed)
+    hearts = []
+    for _ in range(N_SETS):
+        base = presets.normal() if rng.random() < 0.5 else presets.heart_failure()
+        heart = base.replace(
+            tau2=rng.uniform(0.09, 0.25), Sa=rng.uniform(0.8, 1.5), R2=rng.uniform(0.0, 0.04),
+            R3=rng.uniform(0.12, 0.4), C=rng.uniform(6.0, 25.0), Cat=rng.uniform(1.5, 10.0),
+            Pat=rng.uniform(0.6, 1.5), HR=rng.uniform(55.0, 80.0), closed_loop=float(closed_loop),
+        )
+        hearts.append(heart)
+    return hearts
+
+
+@pytest.mark.parametrize("closed_loop", [0, 1], ids=["open-loop", "closed-loop"])
+def test_matches_radau_reference(closed_loop):
+    hearts = random_hearts(seed=11 + closed_loop, closed_loop=closed_loop)
+    beats = 2
+    res = lvenv.simulate(hearts, beats=beats)
+    assert list(res.status) == ["ok"] * N_SETS
+    for i, heart in enumerate(hearts):
+        ref, _ = simulate_reference(heart, cavity_volume(heart.geometry), beats=beats)
+        m = res[i].metrics
+        assert abs(m["EF"] - ref["EF"]) < 0.005, (i, m["EF"], ref["EF"])
+        for key in ("IVCT", "ET", "IVRT"):
+            assert abs(m[key] - ref[key]) < 0.002, (i, key, m[key], ref[key])
+        for key in ("P_lv_peak", "P_ao_sys", "P_ao_dia", "P_ao_mean", "P_ao_pulse"):
+            assert m[key] == pytest.approx(ref[key], rel=0.01), (i, key)
+        for key in ("EDV", "ESV"):
+            assert m[key] == pytest.approx(ref[key], rel=0.005), (i, key)
+
+
+def test_training_protocol_beat_matches_reference():
+    heart = presets.training_condition(3, presets.heart_failure())
+    res = lvenv.simulate(heart, beats=1)
+    ref, y_end = simulate_reference(heart, cavity_volume(heart.geometry), beats=1)
+    np.testing.assert_allclose(res.final_state, y_end, rtol=2e-3, atol=2e-4)
+    assert res.metrics["EF"] == pytest.approx(ref["EF"], abs=0.005)
