@@ -15,6 +15,7 @@ P_lv falls below ``rtol``.
 from __future__ import annotations
 
 import dataclasses
+import os
 from typing import Sequence
 
 import jax
@@ -28,12 +29,19 @@ from lvenv.integrator import ros2_step
 from lvenv.model import IDX_PC, IDX_V, ModelParams
 from lvenv.params import Heart, batch_size, stack, validate
 
-__all__ = ["STATUS", "SimulationResult", "Traces", "simulate", "run_beats"]
+__all__ = ["STATUS", "SimulationResult", "Traces", "simulate", "run_beats", "run_beats_jit"]
 
 STATUS = ("ok", "not_converged", "nonfinite", "diverged", "no_valve_cycle")
 OK, NOT_CONVERGED, NONFINITE, DIVERGED, NO_VALVE_CYCLE = range(len(STATUS))
 _MAX_VOLUME_FACTOR = 20.0  # V > 20 V0 is treated as divergence
 _MAX_PRESSURE = 200.0  # kPa; |P| beyond this is treated as divergence
+
+
+
+def _scan_unroll() -> int:
+    """ROS2 steps per scan iteration: 4 on GPU (fewer loop round-trips, measured +10 %), 1 on CPU."""
+    default = "4" if jax.default_backend() == "gpu" else "1"
+    return int(os.environ.get("LVENV_SCAN_UNROLL", default))
 
 
 def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool):
@@ -65,7 +73,7 @@ def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool):
         return (y1, acc1), ((s[0], s[1], s[4]) if record else None)
 
     xs = (jnp.arange(steps, dtype=y0.dtype), ca[:-1], ca[1:], ca_rate[:-1])
-    (y_end, acc), samples = jax.lax.scan(step, (y0, acc0), xs)
+    (y_end, acc), samples = jax.lax.scan(step, (y0, acc0), xs, unroll=_scan_unroll())
     metrics, valid = events.finish(acc, period)
     traces = None
     if record:
@@ -146,7 +154,7 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
     return out
 
 
-_run_jit = jax.jit(run_beats, static_argnames=("steps", "max_beats", "steady", "record"))
+run_beats_jit = jax.jit(run_beats, static_argnames=("steps", "max_beats", "steady", "record"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -239,7 +247,7 @@ def simulate(
     y0 = model.initial_state(p).T if initial_state is None else np.broadcast_to(np.asarray(initial_state, float), (len(p.v0), model.N_STATES))
     n_members = len(p.v0)
     (p_dev, y_dev), _ = shard_members((jax.tree.map(lambda x: np.asarray(x, dtype), p), np.asarray(y0.T, dtype)), n_members)
-    out = _run_jit(
+    out = run_beats_jit(
         p_dev, y_dev, jnp.asarray(rtol, dtype),
         steps=steps_per_beat, max_beats=beats or max_beats, steady=beats is None, record=traces,
     )

@@ -1,0 +1,51 @@
+"""Optimisers behind one ask/tell protocol: OrthoMADS with kriging search, CMA-ES, kriging/EGO.
+
+    bounds = Bounds(lower, upper, names)                 # physical units
+    opt = make_optimizer("mads" | "cma" | "kriging", bounds, batch_size=num_envs, seed=0)
+    res = run(opt, batch_objective, budget, callback=None, checkpoint=None, progress=None)
+
+`batch_objective(X)` takes a (q, n) array of physical points, q <= batch_size (one vector-env
+step; wrap with `padded` if the env needs exactly num_envs rows), and returns f (q,), or
+(f, feasible), or (f, feasible, violation), or a `BatchEvaluation`. NaN / inf values and
+feasible = False are failed points, never a crash. See `optim.protocol` for the merit and the
+checkpoint contract.
+"""
+
+from optim.barrier import ProgressiveBarrier
+from optim.cmaes import CmaEs, CmaOptions
+from optim.kriging import Kriging, KrigingOptions
+from optim.mads import Mads, MadsOptions
+from optim.methods import METHODS, make_optimizer, minimize_batch
+from optim.protocol import (
+    BatchEvaluation,
+    Bounds,
+    History,
+    OptimResult,
+    Optimizer,
+    load_checkpoint,
+    padded,
+    run,
+    save_checkpoint,
+)
+
+__all__ = [
+    "METHODS",
+    "BatchEvaluation",
+    "Bounds",
+    "CmaEs",
+    "CmaOptions",
+    "History",
+    "Kriging",
+    "KrigingOptions",
+    "Mads",
+    "MadsOptions",
+    "OptimResult",
+    "Optimizer",
+    "ProgressiveBarrier",
+    "load_checkpoint",
+    "make_optimizer",
+    "minimize_batch",
+    "padded",
+    "run",
+    "save_checkpoint",
+]
