@@ -18,7 +18,13 @@ from lvenv.geometry import Geometry
 from lvenv.params import CellParams, Circulation, Heart, LOParams, stack
 from lvenv.simulation import STATUS, SimulationResult, simulate
 
+from lvenv.env import register as _register_envs
+from lvenv.patients import Patient
+
+_register_envs()
+
 __all__ = [
+    "Patient",
     "geometry", "presets", "Geometry", "Heart", "LOParams", "CellParams", "Circulation",
     "stack", "simulate", "SimulationResult", "STATUS",
 ]

@@ -5,17 +5,22 @@ g_ao = P_lv − P_c > 0. An event is a sign change of g between two steps; its t
 there are found by linear interpolation between the steps (error O(h²), sub-step accurate).
 Within one beat (onset of the calcium transient at t = 0) the events are taken in cycle order:
 
-    t_mvc  first mitral closing (t = 0 if closed at onset)  EDV = V(t_mvc)
+    t_mvc  last mitral closing before ejection (t = 0 if closed at onset)   EDV = V(t_mvc)
     t_avo  first aortic opening after t_mvc
-    t_avc  first aortic closing after t_avo          ESV = V(t_avc)
+    t_avc  last aortic closing before filling                               ESV = V(t_avc)
     t_mvo  first mitral opening after t_avc
+
+i.e. a state machine in which a mitral re-opening before ejection, or an aortic re-opening
+before filling, undoes the preceding closing. Two events within one step keep their order.
 
     IVCT = t_avo − t_mvc,  ET = t_avc − t_avo,  IVRT = t_mvo − t_avc,
     filling_time = T − (t_mvo − t_mvc),  SV = EDV − ESV,  EF = SV / EDV,  CO = SV / T.
 
 Aortic pressures over the beat: systolic max, diastolic min, mean (trapezoidal time average),
-pulse = sys − dia; peak P_lv is the beat maximum. A beat without the full event sequence is
-marked invalid (its metrics are then masked by the caller).
+pulse = sys − dia; peak P_lv is the beat maximum. A beat without the full event sequence, or
+whose "ejection" does not reduce the volume (SV < 0: both valves open at once, which happens
+only in degenerate circulations such as R3 → 0 with P_c < P_at), is marked invalid and its
+metrics are masked by the caller.
 """
 
 from __future__ import annotations
@@ -87,8 +92,11 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
     avc, f_avc = _crossing(acc.t, t, acc.g_ao, g_ao, closing=True)
     mvo, f_mvo = _crossing(acc.t, t, acc.g_mv, g_mv, closing=False)
 
-    take_mvc = mvc & (acc.found == 0)
-    found = jnp.where(take_mvc, 1, acc.found)
+    # a valve re-opening before the cycle moves on undoes its closing (chatter, weak beats)
+    found = jnp.where(mvo & (acc.found == 1), 0, acc.found)
+    found = jnp.where(avo & (found == 3), 2, found)
+    take_mvc = mvc & (found == 0)
+    found = jnp.where(take_mvc, 1, found)
     take_avo = avo & (found == 1)
     found = jnp.where(take_avo, 2, found)
     take_avc = avc & (found == 2)
@@ -96,14 +104,19 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
     take_mvo = mvo & (found == 3)
     found = jnp.where(take_mvo, 4, found)
 
+    # two events inside one step keep their cycle order (interpolation alone need not)
+    t_mvc = jnp.where(take_mvc, acc.t + f_mvc * dt, acc.t_mvc)
+    t_avo = jnp.where(take_avo, jnp.maximum(acc.t + f_avo * dt, t_mvc), acc.t_avo)
+    t_avc = jnp.where(take_avc, jnp.maximum(acc.t + f_avc * dt, t_avo), acc.t_avc)
+    t_mvo = jnp.where(take_mvo, jnp.maximum(acc.t + f_mvo * dt, t_avc), acc.t_mvo)
     return Accumulator(
         t=t, g_mv=g_mv, g_ao=g_ao, v=v, p_ao=p_ao,
-        t_mvc=jnp.where(take_mvc, acc.t + f_mvc * dt, acc.t_mvc),
+        t_mvc=t_mvc,
         v_mvc=jnp.where(take_mvc, lerp(acc.v, v, f_mvc), acc.v_mvc),
-        t_avo=jnp.where(take_avo, acc.t + f_avo * dt, acc.t_avo),
-        t_avc=jnp.where(take_avc, acc.t + f_avc * dt, acc.t_avc),
+        t_avo=t_avo,
+        t_avc=t_avc,
         v_avc=jnp.where(take_avc, lerp(acc.v, v, f_avc), acc.v_avc),
-        t_mvo=jnp.where(take_mvo, acc.t + f_mvo * dt, acc.t_mvo),
+        t_mvo=t_mvo,
         found=found,
         p_lv_max=jnp.maximum(acc.p_lv_max, p_lv),
         p_ao_max=jnp.maximum(acc.p_ao_max, p_ao),
@@ -114,8 +127,8 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
 
 def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
     """Metrics of the beat (internal units) and whether the full valve cycle was found."""
-    valid = acc.found == 4
     sv = acc.v_mvc - acc.v_avc
+    valid = (acc.found == 4) & (sv >= 0.0)
     metrics = {
         "EF": sv / jnp.where(valid, acc.v_mvc, 1.0),
         "EDV": acc.v_mvc,

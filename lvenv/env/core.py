@@ -1,0 +1,179 @@
+"""Pure, batched environment dynamics: ``reset(params, key)`` and ``step(state, action, params)``.
+
+gymnax style: parameters are passed in (so per-member patients are free), the PRNG key lives in
+the state, and the Gymnasium classes in :mod:`lvenv.env.vector` / :mod:`lvenv.env.single` jit
+these once. There is no Python loop over members and no host sync inside.
+
+One step evaluates one parameter set per member to steady state with the LO heart
+(:func:`lvenv.simulation.run_beats`), **warm-started** from that member's state at the end of its
+previous step. In the closed loop the warm start is first shifted to the blood volume a cold
+start with the new parameters would have (P_c and P_at move by ΔV / (C + Cat)), so the result
+does not depend on the order in which parameter sets were visited, only the number of beats
+to reach steady state does.
+
+Reward (per member), with relative errors e_k = (o_k − t_k) / t_k over the patient's targets::
+
+    r = − Σ_k w_k e_k² / Σ_k w_k  −  κ (d / P_lo)²,
+    d = max(0, P_lo − P_ao_mean, P_ao_mean − P_hi),   [P_lo, P_hi] = [80, 120] mmHg, κ = 1
+
+computed on the noise-free model output. ``mismatch`` = Σ_k w_k |e_k| / Σ_k w_k; an episode
+terminates when it falls below the tolerance, or when the simulation fails or the action is not
+finite (reward :data:`FAILURE_REWARD`). Autoreset: NEXT_STEP (the step after an episode ends
+returns that member's reset observation, reward 0, and ignores its action), or DISABLED
+(``Config.autoreset = False``: every step evaluates every member's action, as optimisers need).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lvenv import model
+from lvenv.env.spaces import ActionMap
+from lvenv.model import IDX_PAT, IDX_PC, IDX_V, ModelParams
+from lvenv.params import stack
+from lvenv.patients import OBS_NAMES
+from lvenv.simulation import NOT_CONVERGED, OK, run_beats
+from lvenv.units import mmhg_to_kpa
+
+__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "FAILURE_REWARD", "INVALID_ACTION"]
+
+FAILURE_REWARD = -10.0
+INVALID_ACTION = 100  # status code for a non-finite action (simulation codes are 0..4)
+BAND_KPA = (mmhg_to_kpa(80.0), mmhg_to_kpa(120.0))
+BAND_WEIGHT = 1.0
+_I_MEAN = OBS_NAMES.index("P_ao_mean")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class EnvParams:
+    """Per-member constants: the patient's heart, cold-start state, targets and weights."""
+
+    heart: ModelParams  # leaves (N,)
+    y_cold: jax.Array  # (9, N)
+    targets: jax.Array  # (n_obs, N), 1 where untargeted
+    weights: jax.Array  # (n_obs, N), 0 where untargeted
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class EnvState:
+    y: jax.Array  # (9, N) LO-heart state at the end of the last step
+    key: jax.Array
+    steps: jax.Array  # (N,) steps taken in the current episode
+    needs_reset: jax.Array  # (N,) the previous step ended this member's episode
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Static settings (hashable, closed over by jit)."""
+
+    actions: ActionMap
+    steps_per_beat: int = 1000
+    max_beats: int = 60
+    rtol: float = 1e-4
+    tolerance: float = 1e-3
+    max_episode_steps: int | None = None
+    obs_noise: tuple[float, ...] | None = None  # relative std of the measurement noise per observation
+    autoreset: bool = True  # NEXT_STEP autoreset; False: DISABLED (ended members keep being evaluated)
+
+
+def _with_action(heart: ModelParams, values: jax.Array, actions: ActionMap) -> ModelParams:
+    """Replace the action parameters of every member (values (N, k), physical units)."""
+    parts = {"lo": heart.lo, "cell": heart.cell, "circ": heart.circ}
+    for i, (part, field) in enumerate(actions.locations):
+        parts[part] = dataclasses.replace(parts[part], **{field: values[:, i]})
+    return dataclasses.replace(heart, **parts)
+
+
+def _conserve_volume(y: jax.Array, y_cold: jax.Array, heart: ModelParams) -> jax.Array:
+    """Shift P_c and P_at so the closed-loop volume equals the cold start's for these params."""
+    circ = heart.circ
+    volume = lambda s: s[IDX_V] + circ.C * s[IDX_PC] + circ.Cat * s[IDX_PAT]
+    shift = circ.closed_loop * (volume(y_cold) - volume(y)) / (circ.C + circ.Cat)
+    return y.at[IDX_PC].add(shift).at[IDX_PAT].add(shift)
+
+
+def _observe(out) -> jax.Array:
+    return jnp.stack([out["metrics"][k] for k in OBS_NAMES], axis=1)
+
+
+def _score(obs: jax.Array, params: EnvParams):
+    targets, weights = params.targets.T, params.weights.T
+    rel = (obs - targets) / targets
+    wsum = jnp.sum(weights, axis=1)
+    mse = jnp.sum(weights * rel**2, axis=1) / wsum
+    mismatch = jnp.sum(weights * jnp.abs(rel), axis=1) / wsum
+    p_mean = obs[:, _I_MEAN]
+    d = jnp.maximum(0.0, jnp.maximum(BAND_KPA[0] - p_mean, p_mean - BAND_KPA[1]))
+    return -(mse + BAND_WEIGHT * (d / BAND_KPA[0]) ** 2), mismatch
+
+
+def _noisy(obs: jax.Array, key: jax.Array, config: Config) -> jax.Array:
+    if config.obs_noise is None:
+        return obs
+    eps = jax.random.normal(key, obs.shape, obs.dtype)
+    return obs * (1.0 + jnp.asarray(config.obs_noise, obs.dtype) * eps)
+
+
+def _evaluate(heart: ModelParams, y0: jax.Array, config: Config):
+    return run_beats(heart, y0, config.rtol, steps=config.steps_per_beat, max_beats=config.max_beats, steady=True, record=False)
+
+
+def reset(params: EnvParams, key: jax.Array, config: Config):
+    """Every member at its patient's own parameters, simulated to steady state from a cold start."""
+    out = _evaluate(params.heart, params.y_cold, config)
+    key, sub = jax.random.split(key)
+    obs = _observe(out)
+    n = obs.shape[0]
+    state = EnvState(y=out["y"], key=key, steps=jnp.zeros((n,), jnp.int32), needs_reset=jnp.zeros((n,), bool))
+    info = {"metrics": obs, "status": out["status"], "converged": out["converged"], "beats": out["beats"], "parameters": config.actions.current(params.heart)}
+    return state, _noisy(obs, sub, config), info
+
+
+def step(state: EnvState, action: jax.Array, params: EnvParams, config: Config):
+    """One environment step for all members (see module docstring)."""
+    values, clipped, finite = config.actions.to_physical(action, params.heart)
+    fresh = state.needs_reset
+    heart = _with_action(params.heart, values, config.actions)
+    heart = jax.tree.map(lambda default, acted: jnp.where(fresh, default, acted), params.heart, heart)
+    y_start = jnp.where(fresh, params.y_cold, state.y)
+    y_start = _conserve_volume(y_start, params.y_cold, heart)
+    out = _evaluate(heart, y_start, config)
+    obs = _observe(out)
+    reward, mismatch = _score(obs, params)
+    sim_ok = (out["status"] == OK) | (out["status"] == NOT_CONVERGED)
+    invalid = ~finite & ~fresh
+    failed = (~sim_ok | invalid) & ~fresh
+    status = jnp.where(invalid, INVALID_ACTION, out["status"])
+    reward = jnp.where(failed, FAILURE_REWARD, jnp.where(fresh, 0.0, reward))
+    steps = jnp.where(fresh, 0, state.steps + 1)
+    terminated = ~fresh & (failed | (mismatch < config.tolerance))
+    at_limit = jnp.zeros_like(fresh) if config.max_episode_steps is None else steps >= config.max_episode_steps
+    truncated = ~fresh & ~terminated & at_limit
+    key, sub = jax.random.split(state.key)
+    new_state = EnvState(y=out["y"], key=key, steps=steps, needs_reset=(terminated | truncated) & config.autoreset)
+    info = {
+        "metrics": obs,
+        "status": status,
+        "converged": out["converged"],
+        "beats": out["beats"],
+        "mismatch": jnp.where(sim_ok & finite, mismatch, jnp.inf),
+        "clipped": clipped & ~fresh,
+        "reset": fresh,
+        "parameters": config.actions.current(heart),
+    }
+    return new_state, _noisy(obs, sub, config), reward, terminated, truncated, info
+
+
+def env_params(patients) -> EnvParams:
+    """Host-side NumPy: stack the patients' hearts, cold starts, targets and weights (batch-last)."""
+    heart = model.model_params(stack([p.heart for p in patients]))
+    y_cold = model.initial_state(heart)
+    targets = np.array([[p.targets.get(k, 1.0) for k in OBS_NAMES] for p in patients]).T
+    weights = np.array([[p.weight(k) for k in OBS_NAMES] for p in patients]).T
+    return EnvParams(heart, y_cold, targets, weights)
