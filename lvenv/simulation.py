@@ -3,8 +3,8 @@
 The core, :func:`run_beats`, is a pure function of stacked :class:`~lvenv.model.ModelParams`
 and initial states: members are laid out batch-last (state shape ``(9, B)``) so every operation
 is vectorised over members, ``lax.scan`` runs the ROS2 steps of a beat and ``lax.while_loop``
-the beats. Each member has its own time step h = T / steps_per_beat, so heart
-rate may differ per member. A member stops (its state and metrics freeze) as soon as it has
+the beats. Each member has its own time step h = T / steps_per_beat, so heart rate may differ
+per member. A member stops (its state and metrics freeze) as soon as it has
 converged or failed; the loop ends when no member is active. Failure is reported as a status
 code, never raised inside jitted code, and never leaks into other members.
 
@@ -35,7 +35,6 @@ STATUS = ("ok", "not_converged", "nonfinite", "diverged", "no_valve_cycle")
 OK, NOT_CONVERGED, NONFINITE, DIVERGED, NO_VALVE_CYCLE = range(len(STATUS))
 _MAX_VOLUME_FACTOR = 20.0  # V > 20 V0 is treated as divergence
 _MAX_PRESSURE = 200.0  # kPa; |P| beyond this is treated as divergence
-
 
 
 def _scan_unroll() -> int:
