@@ -1,0 +1,22 @@
+"""FE oracle: a 3-D nonlinear finite-element left ventricle (DESIGN §4).
+
+``import fe_oracle`` needs no DOLFINx; :func:`run` loads the DOLFINx backend lazily and tells
+you how to install it if it is missing. See :func:`fe_oracle.api.run` for the interface.
+"""
+
+from fe_oracle.api import BACKENDS, run
+from fe_oracle.cases import HF_UNLOADED, N_UNLOADED, Passive, training_condition
+from fe_oracle.material import Guccione
+from fe_oracle.result import OracleDidNotConverge, OracleResult
+
+__all__ = [
+    "BACKENDS",
+    "HF_UNLOADED",
+    "N_UNLOADED",
+    "Guccione",
+    "OracleDidNotConverge",
+    "OracleResult",
+    "Passive",
+    "run",
+    "training_condition",
+]

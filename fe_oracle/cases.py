@@ -1,0 +1,57 @@
+"""Oracle cases: passive inflation Ⓟ and circulations (DESIGN §1.2), pure Python.
+
+The geometries and the Table 2 training conditions come from :mod:`lvenv.presets`, so the FE
+oracle and the LO heart are trained under identical circulations: open loop (constant atrial
+pressure Pat, venous side at 0 kPa), R1 = 0.0015 kPa·s/ml, R2 = 0, P_c(0) = 10 kPa, and the
+default HR and Rmv of :class:`lvenv.params.Circulation`::
+
+    ①  Pat = 0.33 kPa,  R3 = 0.20 kPa·s/ml,  C = 8 ml/kPa
+    ②  Pat = 0.66 kPa,  R3 = 0.05 kPa·s/ml,  C = 8 ml/kPa
+    ③  Pat = 1.5 kPa,   R3 = 0.20 kPa·s/ml,  C = 8 ml/kPa
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import lvenv  # noqa: F401
+from lvenv import presets
+from lvenv.params import Circulation
+
+__all__ = ["Passive", "training_condition", "resolve_case", "N_UNLOADED", "HF_UNLOADED"]
+
+N_UNLOADED = presets.N_UNLOADED
+HF_UNLOADED = presets.HF_UNLOADED
+
+
+@dataclasses.dataclass(frozen=True)
+class Passive:
+    """Passive inflation Ⓟ: cavity pressure 0 → ``p_max`` kPa, volume reported at ``n_points`` pressures."""
+
+    p_max: float = 4.0
+    n_points: int = 9
+
+    def pressures(self):
+        import numpy as np
+
+        return np.linspace(0.0, self.p_max, self.n_points)
+
+
+def training_condition(k: int) -> Circulation:
+    """The open-loop circulation of Table 2 condition ``k`` ∈ {1, 2, 3} (``lvenv.presets``)."""
+    if k not in presets.TRAINING_CONDITIONS:
+        raise ValueError(f"training condition must be 1, 2 or 3, got {k!r}")
+    return presets.training_condition(k).circulation
+
+
+def resolve_case(case) -> Passive | Circulation:
+    """``"passive"`` / :class:`Passive` / 1–3 / :class:`~lvenv.params.Circulation` → a case record."""
+    if isinstance(case, str):
+        if case == "passive":
+            return Passive()
+        raise ValueError(f"case must be 'passive', 1, 2, 3, a Passive or a Circulation record, got {case!r}")
+    if isinstance(case, (Passive, Circulation)):
+        return case
+    if isinstance(case, int) and not isinstance(case, bool):
+        return training_condition(case)
+    raise ValueError(f"case must be 'passive', 1, 2, 3, a Passive or a Circulation record, got {case!r}")

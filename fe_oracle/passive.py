@@ -1,0 +1,52 @@
+"""Quasi-static pressure loading of a :class:`~fe_oracle.mechanics.Solid` (passive inflation Ⓟ).
+
+Load stepping with a linear displacement predictor and step control: a step that fails is
+halved (up to ``max_cuts`` times in a row), a step that converges in ≤ 10 (modified) Newton iterations lets
+the next one double, never beyond the next output pressure.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fe_oracle.result import OracleDidNotConverge
+
+__all__ = ["inflate"]
+
+
+def inflate(solid, pressures, *, first_step: float = 0.25, max_cuts: int = 6, log: list | None = None):
+    """Volumes (ml) of ``solid`` at each of the increasing ``pressures`` (kPa); ``pressures[0]`` must be 0.
+
+    Raises :class:`OracleDidNotConverge` with the pressure reached and the last residual.
+    """
+    pressures = np.asarray(pressures, dtype=float)
+    if pressures[0] != 0.0 or np.any(np.diff(pressures) <= 0):
+        raise ValueError("pressures must start at 0 and increase")
+    log = [] if log is None else log
+    volumes = [solid.volume()]
+    p_now, step = 0.0, first_step
+    u_prev, p_prev = None, None
+    for target in pressures[1:]:
+        cuts = 0
+        while p_now < target - 1e-12:
+            p_next = min(p_now + step, target)
+            u_now = solid.u.x.array.copy()
+            if u_prev is not None:
+                solid.u.x.array[:] = u_now + (u_now - u_prev) * (p_next - p_now) / (p_now - p_prev)
+            report = solid.solve(p_next)
+            log.append({"pressure": p_next, "converged": report.converged, "reason": report.reason, "iterations": report.iterations, "residual": report.residual})
+            if not report.converged:
+                solid.u.x.array[:] = u_now
+                cuts += 1
+                if cuts > max_cuts:
+                    raise OracleDidNotConverge(
+                        f"passive inflation failed at {p_next:.4g} kPa after {max_cuts} step cuts", time=p_now, residual=report.residual, log=log
+                    )
+                step *= 0.5
+                continue
+            cuts = 0
+            u_prev, p_prev, p_now = u_now, p_now, p_next
+            if report.iterations <= 10:
+                step *= 2.0
+        volumes.append(solid.volume())
+    return np.asarray(volumes)

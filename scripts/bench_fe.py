@@ -1,0 +1,80 @@
+"""Benchmark the FE oracle: passive inflation and a coarse coupled beat; prints one JSON object.
+
+    python scripts/bench_fe.py [--mesh-sizes 6 4] [--beat-mesh-size 10] [--dt 0.01] [--skip-beat]
+
+Targets (issue 5, 2-core machine): passive inflation ≤ 20 s, coarse active beat ≤ 3 min.
+Runs bypass the cache (``use_cache=False``); form compilation is warmed up first so it is not
+counted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import fe_oracle
+from fe_oracle.cases import N_UNLOADED, Passive
+
+
+def _passive(h: float) -> dict:
+    t0 = time.perf_counter()
+    res = fe_oracle.run(N_UNLOADED, "passive", mesh_size=h, use_cache=False)
+    m = res.metadata
+    return {
+        "mesh_size_mm": h,
+        "cells": m["cells"],
+        "dofs": m["dofs"],
+        "seconds": time.perf_counter() - t0,
+        "setup_s": m["setup_s"],
+        "newton_iterations": m["newton_iterations"],
+        "V0_mesh_ml": m["V0_mesh_ml"],
+        "V0_analytic_ml": m["V0_analytic_ml"],
+        "V0_error": m["V0_mesh_ml"] / m["V0_analytic_ml"] - 1.0,
+        "V_at_4kPa_ml": float(res.traces["V"][-1]),
+        "target_s": 20.0,
+    }
+
+
+def _beat(h: float, dt: float) -> dict:
+    t0 = time.perf_counter()
+    out = {"mesh_size_mm": h, "dt_s": dt, "target_s": 180.0}
+    try:
+        res = fe_oracle.run(N_UNLOADED, 2, mesh_size=h, dt=dt, use_cache=False)
+    except fe_oracle.OracleDidNotConverge as err:
+        return dict(out, converged=False, failed_at_s=err.time, last_residual=err.residual, seconds=time.perf_counter() - t0)
+    tr, m = res.traces, res.metadata
+    return dict(
+        out,
+        converged=True,
+        seconds=time.perf_counter() - t0,
+        cells=m["cells"],
+        steps=m["steps"],
+        fe_solves=m["fe_solves"],
+        newton_iterations=m["newton_iterations"],
+        EDV_ml=float(tr["V"].max()),
+        ESV_ml=float(tr["V"].min()),
+        P_lv_peak_kPa=float(tr["P_lv"].max()),
+        stretch_range=[m["stretch_min"], m["stretch_max"]],
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh-sizes", type=float, nargs="+", default=[6.0, 4.0], help="passive inflation mesh sizes h (mm): default and finer")
+    parser.add_argument("--beat-mesh-size", type=float, default=10.0)
+    parser.add_argument("--dt", type=float, default=0.01)
+    parser.add_argument("--skip-beat", action="store_true")
+    args = parser.parse_args()
+    fe_oracle.run(N_UNLOADED, Passive(p_max=0.25, n_points=2), mesh_size=10.0, use_cache=False)  # warm-up: JIT
+    report = {"passive": [_passive(h) for h in args.mesh_sizes]}
+    if len(report["passive"]) >= 2:
+        v = [r["V_at_4kPa_ml"] for r in report["passive"]]
+        report["mesh_convergence_V4_change"] = abs(v[1] - v[0]) / v[1]
+    if not args.skip_beat:
+        report["beat"] = _beat(args.beat_mesh_size, args.dt)
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,85 @@
+"""FE oracle front end without DOLFINx: import, case resolution, cache (pure Python)."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import fe_oracle
+from fe_oracle import cache
+from fe_oracle.analytic import sphere_pressure, sphere_volume
+from fe_oracle.cases import Passive, resolve_case, training_condition
+from fe_oracle.result import OracleResult
+from lvenv.params import Circulation
+
+_BLOCK_DOLFINX = """
+import sys
+for name in ("dolfinx_solver", "dolfinx", "petsc4py", "mpi4py", "gmsh"):
+    sys.modules[name] = None
+import fe_oracle
+try:
+    fe_oracle.run(fe_oracle.N_UNLOADED, "passive", use_cache=False)
+except ImportError as err:
+    print(str(err))
+"""
+
+
+def test_import_without_dolfinx_then_install_hint():
+    out = subprocess.run([sys.executable, "-c", _BLOCK_DOLFINX], capture_output=True, text=True, check=True)
+    assert "pip install -e '.[fe]'" in out.stdout
+
+
+def test_training_conditions_are_table_2():
+    for k, (pat, r3) in {1: (0.33, 0.20), 2: (0.66, 0.05), 3: (1.5, 0.20)}.items():
+        c = resolve_case(k)
+        assert (c.Pat, c.R3, c.C, c.R1, c.R2, c.Pc0, c.closed_loop) == (pat, r3, 8.0, 0.0015, 0.0, 10.0, 0.0)
+    assert resolve_case("passive") == Passive()
+    assert resolve_case(Circulation()) == Circulation()
+    with pytest.raises(ValueError, match="training condition"):
+        training_condition(4)
+    with pytest.raises(ValueError, match="case must be"):
+        resolve_case("active")
+
+
+def test_cache_key_depends_on_every_input():
+    base = {"geometry": fe_oracle.N_UNLOADED, "case": training_condition(2), "mesh_size": 6.0}
+    k = cache.key(base)
+    assert k == cache.key(dict(base))
+    assert k != cache.key(dict(base, mesh_size=5.0))
+    assert k != cache.key(dict(base, case=training_condition(2).__class__(**{**training_condition(2).__dict__, "R3": 0.06})))
+
+
+def test_cache_store_is_atomic(tmp_path, monkeypatch):
+    result = OracleResult({"t": np.arange(3.0), "V": np.ones(3)}, {"a": 1.5}, [{"iterations": 2}])
+    cache.store(tmp_path, "k1", result)
+    back = cache.load(tmp_path, "k1")
+    assert back.from_cache and back.metadata == {"a": 1.5} and np.array_equal(back.traces["t"], np.arange(3.0))
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez", killed)
+    with pytest.raises(KeyboardInterrupt):
+        cache.store(tmp_path, "k2", result)
+    assert cache.load(tmp_path, "k2") is None
+    assert sorted(os.listdir(tmp_path)) == ["k1.npz"]
+
+
+def test_sphere_analytic_small_strain_limit():
+    """Linear elasticity limit of the exact solution: p = 4 μ (δ/A) (1 − A³/B³), μ = C b / 2."""
+    A, B, C, b = 20.0, 30.0, 10.0, 1.0
+    assert sphere_pressure(A, A, B, C, b) == pytest.approx(0.0, abs=1e-12)
+    da = 1e-4
+    mu = C * b / 2.0  # W ≈ C b tr(E²) / 2 ⇒ S = C b E = 2 μ E
+    assert sphere_pressure(A + da, A, B, C, b) == pytest.approx(4 * mu * (da / A) * (1 - A**3 / B**3), rel=1e-3)
+    v = [sphere_volume(p, A, B, C, b) for p in (0.0, 1.0, 2.0)]
+    assert v[0] < v[1] < v[2]
+
+
+def test_run_rejects_bad_arguments():
+    with pytest.raises(ValueError, match="backend"):
+        fe_oracle.run(fe_oracle.N_UNLOADED, backend="abaqus")
+    with pytest.raises(ValueError, match="mesh_size"):
+        fe_oracle.run(fe_oracle.N_UNLOADED, mesh_size=0.0)
