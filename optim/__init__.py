@@ -9,6 +9,10 @@ step; wrap with `padded` if the env needs exactly num_envs rows), and returns f 
 (f, feasible), or (f, feasible, violation), or a `BatchEvaluation`. NaN / inf values and
 feasible = False are failed points, never a crash. See `optim.protocol` for the merit and the
 checkpoint contract.
+
+Through the heart's vector env (DESIGN §2): `minimize(venv, method, budget, seed, ...)` returns a
+`MinimizeResult` (best parameters and observation by name, mismatch per target, history);
+`optim.fit.fit_patients` runs the inverse problem for the built-in patients.
 """
 
 from optim.barrier import ProgressiveBarrier
@@ -16,6 +20,7 @@ from optim.cmaes import CmaEs, CmaOptions
 from optim.kriging import Kriging, KrigingOptions
 from optim.mads import Mads, MadsOptions
 from optim.methods import METHODS, make_optimizer, minimize_batch
+from optim.minimize import EnvHistory, MinimizeResult, SearchSpace, minimize
 from optim.protocol import (
     BatchEvaluation,
     Bounds,
@@ -34,16 +39,20 @@ __all__ = [
     "Bounds",
     "CmaEs",
     "CmaOptions",
+    "EnvHistory",
     "History",
     "Kriging",
     "KrigingOptions",
     "Mads",
     "MadsOptions",
+    "MinimizeResult",
     "OptimResult",
     "Optimizer",
     "ProgressiveBarrier",
+    "SearchSpace",
     "load_checkpoint",
     "make_optimizer",
+    "minimize",
     "minimize_batch",
     "padded",
     "run",

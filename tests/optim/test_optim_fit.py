@@ -1,0 +1,81 @@
+"""The inverse problem end to end (`optim.fit`): fits, table, plots, synthetic recovery."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import lvenv
+from lvenv.identification import DEFAULT_ACTION_PARAMS
+from lvenv.patients import builtin
+from optim.fit import fit_patients, null_directions, synthetic_recovery
+from optim.minimize import SearchSpace
+
+TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "fit_patients.py"
+
+
+@pytest.fixture(scope="module")
+def rows(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit")
+    result = fit_patients(("normal",), ("mads", "cma"), num_envs=8, budget=64, seed=0, out_dir=out,
+                          options={"mads": {"n_candidates": 64}})
+    return result, out
+
+
+def test_fit_drops_the_mismatch_and_writes_a_pv_plot(rows):
+    result, out = rows
+    assert [(r.patient, r.method) for r in result] == [("normal", "mads"), ("normal", "cma")]
+    mads = result[0]
+    own = mads.result.history.mismatch[0]  # MADS evaluates the patient's own parameters first
+    for r in result:
+        assert r.mismatch < 0.5 * own, (r.method, r.mismatch, own)
+        assert r.evaluations == 64 and r.wall_time > 0
+        assert set(r.mismatch_per_target) == set(TARGETS) and set(r.parameters) == set(DEFAULT_ACTION_PARAMS)
+    png = out / "pv_normal.png"
+    assert png.exists() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+
+
+def test_script_prints_the_table_in_mmhg_and_ms(rows, capsys):
+    spec = importlib.util.spec_from_file_location("fit_patients_script", SCRIPT)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    script.print_fits(rows[0])
+    text = capsys.readouterr().out
+    assert "tau2 (ms)" in text and "ET (ms)" in text and "P_ao pulse (mmHg)" in text
+    assert "60.0" in text  # EF target of the normal patient, in %
+    assert "300.0" in text  # ET target, in ms
+
+
+def test_targets_move_less_along_the_null_directions_than_across_them():
+    heart = builtin("normal").heart
+    truth = np.array([[0.17, 1.0, 0.025, 0.2, 15.0, 2.0]])
+    sigmas, null = null_directions(heart, truth, TARGETS)
+    assert sigmas.shape == (1, 4) and null.shape == (1, 6, 2)
+    np.testing.assert_allclose(null[0].T @ null[0], np.eye(2), atol=1e-12)
+    space = SearchSpace.for_names(DEFAULT_ACTION_PARAMS)
+    b = space.bounds
+    u0 = (space.to_search(truth[0]) - b.lower) / b.width
+    row_dir = np.linalg.svd(np.eye(6) - null[0] @ null[0].T)[0][:, 0]  # a direction across the null space
+    hearts = [heart.replace(**dict(zip(space.names, map(float, space.to_physical(b.lower + (u0 + 0.02 * d) * b.width)))))
+              for d in (np.zeros(6), null[0][:, 0], null[0][:, 1], row_dir)]
+    hearts += hearts[-1:] * 9  # 13 members, like null_directions' own batch: no second compilation
+    m = lvenv.simulate(hearts, steps_per_beat=500, max_beats=60, traces=False).metrics
+    change = [max(abs(m[t][i] / m[t][0] - 1) for t in TARGETS) for i in (1, 2, 3)]
+    assert max(change[:2]) < 0.1 * change[2], change
+
+
+def test_synthetic_recovery_matches_the_observations():
+    rep = synthetic_recovery(n_sets=1, method="cma", num_envs=8, budget=320, seed=5)
+    assert rep.truths.shape == rep.fits.shape == (1, 6)
+    assert rep.max_error[0] < 0.03, rep.max_error
+    assert rep.null_share.shape == (1, 6) and set(rep.identifiable) == set(DEFAULT_ACTION_PARAMS)
+
+
+@pytest.mark.slow
+def test_synthetic_recovery_of_ten_truths_within_one_percent():
+    rep = synthetic_recovery(n_sets=10, method="cma", num_envs=16, budget=1600, seed=0)
+    assert np.all(rep.max_error < 0.01), rep.max_error
