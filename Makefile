@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(VENV)/bin/lvenv presets
+	$(VENV)/bin/python scripts/fit_patients.py --out out/fit
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q

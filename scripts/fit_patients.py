@@ -59,7 +59,7 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["mads", "cma", "kriging"])
     ap.add_argument("--budget", type=int, default=None, help="evaluations per fit (480; synthetic: 1600)")
     ap.add_argument("--num-envs", type=int, default=16)
-    ap.add_argument("--steps-per-beat", type=int, default=500)
+    ap.add_argument("--steps-per-beat", type=int, default=1000, help="500 is faster; IVRT then moves by 1–2 %%")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/fit", help="folder for the PV-loop plots")
     ap.add_argument("--synthetic", type=int, default=0, metavar="N", help="instead: synthetic recovery of N random truths")
