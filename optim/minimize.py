@@ -48,7 +48,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import pickle
-import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -62,7 +61,7 @@ from lvenv.identification import ACTION_BOUNDS
 from lvenv.params import stack
 from lvenv.patients import OBS_NAMES, Patient
 from optim.methods import METHODS, make_optimizer
-from optim.protocol import BatchEvaluation, Bounds, FloatArray, OptimResult, Optimizer, padded, run
+from optim.protocol import BatchEvaluation, Bounds, FloatArray, OptimResult, Optimizer, padded, run, write_pickle_atomically
 
 __all__ = ["SearchSpace", "EnvHistory", "MinimizeResult", "EnvObjective", "minimize", "patient_values", "OK_STATUSES"]
 
@@ -274,20 +273,6 @@ def _options(method: str, options: dict[str, Any]) -> Any:
     return options_cls(**options)
 
 
-def _save(path: Path, payload: dict[str, Any]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            pickle.dump(payload, fh, protocol=5)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _load(path: Path, like: Optimizer, env_key: tuple[Any, ...]) -> dict[str, Any]:
     with open(path, "rb") as fh:
         payload = pickle.load(fh)
@@ -379,7 +364,7 @@ def minimize(
     def after_round(o: Optimizer) -> bool | None:
         elapsed.append(o.wall_time)
         if path is not None:
-            _save(path, {"format": CHECKPOINT_FORMAT, "optimizer": o, "env_key": env_key,
+            write_pickle_atomically(path, {"format": CHECKPOINT_FORMAT, "optimizer": o, "env_key": env_key,
                          "env_state": jax.device_get(env._state), "records": objective.records,
                          "elapsed": elapsed})
         return callback(o) if callback is not None else None

@@ -367,20 +367,26 @@ BatchObjective = Callable[[FloatArray], Any]
 Callback = Callable[[Optimizer], bool | None]
 
 
-def save_checkpoint(path: str | os.PathLike[str], optimizer: Optimizer) -> None:
-    """Pickle the optimiser (state + RNG) atomically: write a temp file, fsync, os.replace."""
+def write_pickle_atomically(path: str | os.PathLike[str], payload: Any) -> None:
+    """Pickle ``payload`` to ``path`` so a crash never leaves a half-written file:
+    write a temp file in the same folder, fsync, then os.replace."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            pickle.dump({"format": CHECKPOINT_FORMAT, "optimizer": optimizer}, fh, protocol=5)
+            pickle.dump(payload, fh, protocol=5)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, target)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def save_checkpoint(path: str | os.PathLike[str], optimizer: Optimizer) -> None:
+    """Pickle the optimiser (state + RNG) atomically (:func:`write_pickle_atomically`)."""
+    write_pickle_atomically(path, {"format": CHECKPOINT_FORMAT, "optimizer": optimizer})
 
 
 def load_checkpoint(path: str | os.PathLike[str], like: Optimizer | None = None) -> Optimizer:
