@@ -5,7 +5,7 @@ import time
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_solver")
+import dolfinx_solver  # noqa: E402,F401  (make test installs the fe extra: missing DOLFINx must fail, not skip)
 
 import fe_oracle  # noqa: E402
 from fe_oracle.cases import N_UNLOADED, Passive  # noqa: E402

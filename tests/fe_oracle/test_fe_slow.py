@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_solver")
+import dolfinx_solver  # noqa: E402,F401  (make test installs the fe extra: missing DOLFINx must fail, not skip)
 
 import fe_oracle  # noqa: E402
 from fe_oracle.cases import HF_UNLOADED, N_UNLOADED  # noqa: E402

@@ -8,7 +8,7 @@ import pytest
 import optim
 from optim import Bounds, MadsOptions
 
-pytest.importorskip("PyNomad")
+import PyNomad  # noqa: E402,F401  (make test installs the nomad extra: missing NOMAD must fail, not skip)
 from optim.nomad_ref import nomad_minimize  # noqa: E402
 
 BOUNDS = Bounds(np.full(4, -2.0), np.full(4, 3.0))
