@@ -25,6 +25,7 @@ import jax.numpy as jnp  # noqa: E402
 import gymnasium  # noqa: E402
 
 import lvenv  # noqa: E402,F401
+from lvenv.devices import shard_members  # noqa: E402
 from lvenv.env import core  # noqa: E402
 from lvenv.simulation import run_beats_jit  # noqa: E402
 
@@ -45,8 +46,8 @@ def measure(num_envs: int, repeats: int, steps_per_beat: int, seed: int = 0) -> 
         env_times.append(time.perf_counter() - t0)
 
     config = venv.config
-    padded = np.concatenate([actions, np.repeat(actions[-1:], venv._padded - num_envs, axis=0)]) if venv._padded > num_envs else actions
-    values, _, _ = config.actions.to_physical(jnp.asarray(padded), venv._params.heart)
+    padded, _ = shard_members(actions, num_envs, batch_axis_of=lambda leaf: 0)
+    values, _, _ = config.actions.to_physical(padded, venv._params.heart)
     heart = core._with_action(venv._params.heart, values, config.actions)
     y = venv._state.y
     core_call = lambda: jax.device_get(run_beats_jit(heart, y, jnp.asarray(config.rtol), steps=config.steps_per_beat, max_beats=config.max_beats, steady=True, record=False))

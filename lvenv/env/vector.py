@@ -20,7 +20,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from lvenv.devices import MIN_MEMBERS_PER_DEVICE, shard_members
+from lvenv.devices import shard_members
 from lvenv.env import core
 from lvenv.env.spaces import ActionMap, observation_space
 from lvenv.identification import DEFAULT_ACTION_PARAMS
@@ -114,12 +114,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_names = self.config.actions.names
         self.obs_names = OBS_NAMES
-        devices = len(jax.devices())
-        self._padded = num_envs if num_envs < MIN_MEMBERS_PER_DEVICE * devices else -(-num_envs // devices) * devices
-        padded_patients = self.patients + [self.patients[-1]] * (self._padded - num_envs)
-        self._params, _ = shard_members(core.env_params(padded_patients), self._padded)
+        self._params, self._padded = shard_members(core.env_params(self.patients), num_envs)
         self._state: core.EnvState | None = None
-        self._last: dict[str, np.ndarray] | None = None
+        self._parameters: np.ndarray | None = None  # (num_envs, k) action parameters of the last step
 
     @property
     def trace_count(self) -> int:
@@ -131,9 +128,6 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
 
     def _step(self, state, action, params):
         return _step_jit(state, action, params, config=self.config)
-
-    def _host(self, tree):
-        return jax.tree.map(lambda x: np.asarray(x)[..., : self.num_envs] if np.ndim(x) and np.shape(x)[-1] == self._padded else np.asarray(x), jax.device_get(tree))
 
     def _info(self, raw: dict[str, Any]) -> dict[str, Any]:
         metrics = np.asarray(raw["metrics"])[: self.num_envs]
@@ -156,28 +150,26 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         state, obs, info = self._reset(self._params, jax.random.PRNGKey(seed))
         self._state = state
         obs, info = jax.device_get((obs, info))
-        self._last = {"parameters": np.asarray(info["parameters"])[: self.num_envs], "y": None}
+        self._parameters = np.asarray(info["parameters"])[: self.num_envs]
         return np.asarray(obs)[: self.num_envs], self._info(info)
 
     def step(self, actions):
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, len(self.action_names))
-        if self._padded > self.num_envs:
-            actions = np.concatenate([actions, np.repeat(actions[-1:], self._padded - self.num_envs, axis=0)])
-        actions, _ = shard_members(actions, self._padded, batch_axis_of=lambda leaf: 0)
+        actions, _ = shard_members(actions, self.num_envs, batch_axis_of=lambda leaf: 0)
         state, obs, reward, terminated, truncated, info = self._step(self._state, actions, self._params)
         self._state = state
         obs, reward, terminated, truncated, info = jax.device_get((obs, reward, terminated, truncated, info))
         n = self.num_envs
-        self._last = {"parameters": np.asarray(info["parameters"])[:n], "y": None}
+        self._parameters = np.asarray(info["parameters"])[:n]
         return np.asarray(obs)[:n], np.asarray(reward)[:n], np.asarray(terminated)[:n], np.asarray(truncated)[:n], self._info(info)
 
     def member_heart(self, i: int):
         """Member i's Heart at its current parameters (host-side, for plotting or re-simulation)."""
-        values = self._last["parameters"][i] if self._last else [None] * len(self.action_names)
-        changes = {k: float(v) for k, v in zip(self.action_names, values) if v is not None}
-        return self.patients[i].heart.replace(**changes)
+        if self._parameters is None:
+            return self.patients[i].heart
+        return self.patients[i].heart.replace(**{k: float(v) for k, v in zip(self.action_names, self._parameters[i])})
 
     def member_state(self, i: int) -> np.ndarray:
         """Member i's LO-heart state (9,) at the end of its last step."""
