@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import pathlib
+import sys
 import time
 
 import lvenv  # noqa: F401
@@ -45,6 +46,7 @@ def run(
     newton_max_it: int = 25,
     cache_dir: str | pathlib.Path | None = None,
     use_cache: bool = True,
+    progress: bool | None = None,
 ) -> OracleResult:
     """Run the FE oracle on ``geometry`` (unloaded, mm) for ``case``.
 
@@ -58,6 +60,8 @@ def run(
     Returns an :class:`~fe_oracle.result.OracleResult`; raises
     :class:`~fe_oracle.result.OracleDidNotConverge` if a step fails after all cuts. Results are
     cached under ``cache_dir`` (``use_cache=False`` neither reads nor writes the cache).
+    ``progress``: a tqdm bar over simulated time (passive: over the load); ``None`` shows it only
+    on a terminal, and only on MPI rank 0.
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -89,11 +93,14 @@ def run(
     if use_cache and (hit := cache.load(directory, k)) is not None:
         return hit
     be = load_backend()
+    show = bool(getattr(sys.stderr, "isatty", lambda: False)()) if progress is None else bool(progress)
     t0 = time.perf_counter()
     if passive:
-        traces, meta, log = be.run_passive(geometry, material, mesh_size, record.pressures(), max_cuts=max_cuts, newton_max_it=newton_max_it)
+        traces, meta, log = be.run_passive(geometry, material, mesh_size, record.pressures(), max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show)
     else:
-        traces, meta, log = be.run_beat(geometry, record, cell, material, mesh_size, dt, int(beats), duration=duration, max_cuts=max_cuts, newton_max_it=newton_max_it)
+        traces, meta, log = be.run_beat(
+            geometry, record, cell, material, mesh_size, dt, int(beats), duration=duration, max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show
+        )
     meta = dict(meta, case="passive" if passive else "beat", key=k, code_version=cache.code_version(), mesh_size_mm=float(mesh_size), total_s=time.perf_counter() - t0)
     if not passive:
         meta.update(dt_s=float(dt), beats=int(beats))

@@ -29,6 +29,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 import dolfinx_solver  # noqa: F401  (must precede ufl / mpi4py / dolfinx)
 import ufl
@@ -77,13 +78,18 @@ class LVModel:
         }
 
 
-def run_passive(geometry, material, mesh_size, pressures, *, max_cuts=6, newton_max_it=25):
+def _bar(comm, show: bool, total: float, desc: str, unit: str):
+    return tqdm(total=total, desc=desc, unit=unit, disable=not (show and comm.rank == 0), bar_format="{l_bar}{bar}| {n:.3g}/{total:.3g} {unit} [{elapsed}<{remaining}{postfix}]")
+
+
+def run_passive(geometry, material, mesh_size, pressures, *, max_cuts=6, newton_max_it=25, progress=False):
     """Passive inflation (no active tension). Returns (traces, metadata, log)."""
     t0 = time.perf_counter()
     model = LVModel(geometry, mesh_size, material, None, newton_max_it=newton_max_it)
     info = model.mesh_info()
     log: list = []
-    volumes = inflate(model.solid, pressures, max_cuts=max_cuts, log=log)
+    with _bar(model.solid.comm, progress, float(pressures[-1]), "FE passive inflation", "kPa") as bar:
+        volumes = inflate(model.solid, pressures, max_cuts=max_cuts, log=log, bar=bar)
     n = len(pressures)
     traces = {"t": np.asarray(pressures) / pressures[-1], "V": volumes, "P_lv": np.asarray(pressures, float), "P_ao": np.full(n, np.nan)}
     meta = dict(info, wall_s=time.perf_counter() - t0, setup_s=model.setup_s, newton_iterations=sum(r["iterations"] for r in log), solves=len(log))
@@ -258,7 +264,7 @@ class _Beat:
         return True
 
 
-def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=None, volume_tol=None, max_cuts=4, newton_max_it=25, n_sub=5):
+def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=None, volume_tol=None, max_cuts=4, newton_max_it=25, n_sub=5, progress=False):
     """Coupled active run over ``beats`` beats (or ``duration`` s). Returns (traces, metadata, log).
 
     Metadata ``stretch_min``/``stretch_max``: extremes of the fibre stretch over all quadrature
@@ -275,18 +281,21 @@ def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=N
     t_end = beats * beat.period if duration is None else duration
     rows = [(0.0, beat.v0d, beat.p_lv, beat.p_ao, beat.p_c, beat.p_at)]
     cuts_total = 0
-    while beat.t < t_end - 1e-9:
-        h = min(dt, t_end - beat.t)
-        cuts = 0
-        while not beat.step(h):
-            cuts += 1
-            cuts_total += 1
-            if cuts > max_cuts:
-                raise OracleDidNotConverge(
-                    f"coupled step failed after {max_cuts} halvings of dt (last dt {h:.3g} s)", time=beat.t, residual=beat.last_residual, log=log
-                )
-            h *= 0.5
-        rows.append((beat.t, beat.v0d, beat.p_lv, beat.p_ao, beat.p_c, beat.p_at))
+    with _bar(model.solid.comm, progress, t_end, "FE beat", "s") as bar:
+        while beat.t < t_end - 1e-9:
+            h = min(dt, t_end - beat.t)
+            cuts = 0
+            while not beat.step(h):
+                cuts += 1
+                cuts_total += 1
+                if cuts > max_cuts:
+                    raise OracleDidNotConverge(
+                        f"coupled step failed after {max_cuts} halvings of dt (last dt {h:.3g} s)", time=beat.t, residual=beat.last_residual, log=log
+                    )
+                h *= 0.5
+            rows.append((beat.t, beat.v0d, beat.p_lv, beat.p_ao, beat.p_c, beat.p_at))
+            bar.update(h)
+            bar.set_postfix_str(f"P_lv {beat.p_lv:.2f} kPa, V {beat.v0d:.1f} ml", refresh=False)
     arr = np.array(rows)
     traces = {"t": arr[:, 0], "V": arr[:, 1], "P_lv": arr[:, 2], "P_ao": arr[:, 3], "P_c": arr[:, 4], "P_at": arr[:, 5]}
     meta = dict(
@@ -303,6 +312,7 @@ def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=N
         stretch_p01=beat._global_range(np.array([beat.lam_p01]))[0],
         stretch_p99=beat._global_range(np.array([beat.lam_p99]))[1],
         activation_time_max_s=beat._global_range(beat.t_act)[1],
+        period_s=beat.period,
         volume_tol_ml=tol,
     )
     return traces, meta, log

@@ -56,12 +56,14 @@ __all__ = [
 QUADRATURE_DEGREE = 4
 _ML_PER_MM3 = 1e-3
 # Attempts (line search, Jacobian lag) in order, each restarting from the state before the call:
-# 1. modified Newton: the Jacobian and its LU factors are rebuilt only every _LAG iterations,
-#    counted across calls, so successive load steps / trial pressures re-use one factorisation
-#    (an iteration then costs a residual assembly and two triangular solves);
-# 2. full Newton steps; 3. full Newton with a backtracking line search (slow but robust).
+# 1. modified Newton with a backtracking line search: the Jacobian and its LU factors are
+#    rebuilt only every _LAG iterations, counted across calls, so successive load steps / trial
+#    pressures re-use one factorisation (an iteration then costs a residual assembly and two
+#    triangular solves; a Jacobian assembly costs ~12 residuals). The line search also pulls
+#    back steps that invert elements (J ≤ 0 gives a NaN residual), which plain steps cannot;
+# 2. full Newton steps; 3. full Newton with the line search (slow but robust).
 _LAG = 4
-_ATTEMPTS = (("basic", _LAG), ("basic", 1), ("bt", 1))
+_ATTEMPTS = (("bt", _LAG), ("basic", 1), ("bt", 1))
 
 
 def quadrature_function(mesh, shape: tuple[int, ...] = (), degree: int = QUADRATURE_DEGREE) -> dolfinx.fem.Function:

@@ -30,7 +30,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-__all__ = ["METRIC_NAMES", "Accumulator", "start", "update", "finish"]
+__all__ = ["METRIC_NAMES", "Accumulator", "start", "update", "finish", "beat_metrics"]
 
 METRIC_NAMES = (
     "EF", "EDV", "ESV", "SV", "IVCT", "ET", "IVRT", "filling_time",
@@ -146,3 +146,18 @@ def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
         "CO": sv / period,
     }
     return metrics, valid
+
+
+@jax.jit
+def beat_metrics(t, v, p_lv, p_at, p_c, p_ao, period) -> tuple[dict[str, jax.Array], jax.Array]:
+    """Metrics of one beat given as samples (1-D arrays, t from the beat's onset), e.g. FE traces.
+
+    The same event detection as the LO heart's (:func:`start`, :func:`update`, :func:`finish`)
+    folded over the samples; returns the metrics and whether the full valve cycle was found.
+    """
+
+    def fold(acc, sample):
+        return update(acc, *sample), None
+
+    acc, _ = jax.lax.scan(fold, start(t[0], v[0], p_lv[0], p_at[0], p_c[0], p_ao[0]), (t[1:], v[1:], p_lv[1:], p_at[1:], p_c[1:], p_ao[1:]))
+    return finish(acc, period)

@@ -83,3 +83,42 @@ def test_run_rejects_bad_arguments():
         fe_oracle.run(fe_oracle.N_UNLOADED, backend="abaqus")
     with pytest.raises(ValueError, match="mesh_size"):
         fe_oracle.run(fe_oracle.N_UNLOADED, mesh_size=0.0)
+
+
+def _synthetic_beat(onset: float = 0.0):
+    """A beat sampled every 10 ms whose valve events are known exactly (all pressures linear
+    between samples, so the detector's linear interpolation is exact)."""
+    t = np.round(np.arange(0.0, 1.0 + 1e-9, 0.01), 12)
+    knots = ([0.0, 0.05, 0.1, 0.3, 0.4, 1.0], [0.5, 1.5, 12.0, 12.0, 0.0, 0.5])
+    p_lv = np.interp(t, *knots)
+    p_c = 10.0 - 5.0 * t
+    v = 100.0 - 100.0 * t
+    g = lambda a, b, ga, gb: a + (b - a) * ga / (ga - gb)  # noqa: E731  zero of a line through (a, ga), (b, gb)
+    events = {
+        "mvc": g(0.02, 0.03, 1 - np.interp(0.02, *knots), 1 - np.interp(0.03, *knots)),
+        "avo": g(0.09, 0.1, np.interp(0.09, *knots) - (10 - 5 * 0.09), 12.0 - 9.5),
+        "avc": g(0.33, 0.34, np.interp(0.33, *knots) - (10 - 5 * 0.33), np.interp(0.34, *knots) - (10 - 5 * 0.34)),
+        "mvo": g(0.39, 0.4, 1 - np.interp(0.39, *knots), 1.0),
+    }
+    traces = {"t": t + onset, "V": v, "P_lv": p_lv, "P_ao": p_c, "P_c": p_c, "P_at": np.ones_like(t)}
+    return traces, events
+
+
+def test_beat_metrics_locate_valve_events_between_samples():
+    from fe_oracle.metrics import beat_metrics
+
+    traces, ev = _synthetic_beat()
+    m = beat_metrics(OracleResult(traces, {"case": "beat", "period_s": 1.0}, []))
+    assert m["valid"] == 1.0
+    edv, esv = 100.0 - 100.0 * ev["mvc"], 100.0 - 100.0 * ev["avc"]
+    expected = {"IVCT": ev["avo"] - ev["mvc"], "ET": ev["avc"] - ev["avo"], "IVRT": ev["mvo"] - ev["avc"], "EDV": edv, "ESV": esv, "EF": (edv - esv) / edv, "P_lv_peak": 12.0}
+    for name, value in expected.items():
+        assert m[name] == pytest.approx(value, rel=1e-9), name
+    two = {k: np.concatenate([v[:-1], w]) for (k, v), w in zip(traces.items(), _synthetic_beat(1.0)[0].values())}
+    two["P_lv"] = np.concatenate([traces["P_lv"][:-1] * 0.5, traces["P_lv"]])  # a weaker first beat
+    last = beat_metrics(OracleResult(two, {"case": "beat", "period_s": 1.0}, []))
+    assert last["IVCT"] == pytest.approx(m["IVCT"], rel=1e-9) and last["P_lv_peak"] == 12.0
+    first = beat_metrics(OracleResult(two, {"case": "beat", "period_s": 1.0}, []), beat=0)
+    assert first["P_lv_peak"] == pytest.approx(6.0)
+    with pytest.raises(ValueError, match="passive"):
+        beat_metrics(OracleResult(traces, {"case": "passive"}, []))

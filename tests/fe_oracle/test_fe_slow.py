@@ -20,14 +20,21 @@ def test_mesh_convergence_of_passive_inflation(tmp_path):
 @pytest.mark.parametrize("geometry", [N_UNLOADED, HF_UNLOADED], ids=["N", "HF"])
 @pytest.mark.parametrize("condition", [1, 2, 3])
 def test_active_beat_gives_a_physiological_pv_loop(tmp_path, geometry, condition):
-    """Coarse mesh (h = 10 mm), dt = 10 ms, one beat of Table 2 from the documented initial state."""
+    """Coarse mesh (h = 10 mm), dt = 10 ms, one beat of Table 2 from the documented initial state:
+    a full valve cycle with physiological volumes, pressures and phase durations."""
+    from fe_oracle.metrics import beat_metrics
+
     res = fe_oracle.run(geometry, condition, mesh_size=10.0, dt=0.01, cache_dir=tmp_path)
-    v, p = res.traces["V"], res.traces["P_lv"]
-    ef = (v.max() - v.min()) / v.max()
-    assert 0.25 < ef < 0.8
-    assert 6.0 < p.max() < 25.0  # kPa (45–190 mmHg)
+    m, meta = beat_metrics(res), res.metadata
     assert np.isclose(res.traces["t"][-1], 1.0)
-    assert res.metadata["stretch_min"] < 0.95 and res.metadata["stretch_max"] > 1.1
+    assert m["valid"] == 1.0
+    assert 0.35 < m["EF"] < 0.7
+    assert 1.0 < m["EDV"] / meta["V0_mesh_ml"] < 2.0
+    assert 8.0 < m["P_lv_peak"] < 16.0  # kPa (60–120 mmHg; the training afterloads open at ≤ 75 mmHg)
+    assert 0.02 < m["IVCT"] < 0.1 and 0.12 < m["ET"] < 0.3 and 0.05 < m["IVRT"] < 0.2  # s
+    assert 0.06 < meta["activation_time_max_s"] < 0.1  # whole-LV activation, ≈ 80 ms in man
+    assert meta["stretch_p01"] < 0.9 and meta["stretch_p99"] > 1.15  # heterogeneous fibre stretch
+    assert meta["stretch_min"] > 0.6 and meta["stretch_max"] < 1.45
 
 
 _MPI_SCRIPT = """

@@ -1,0 +1,36 @@
+"""Per-beat metrics of an oracle run (DESIGN §1.5), by the LO heart's own valve-event detector."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import lvenv  # noqa: F401  (float64)
+from lvenv import events
+
+from fe_oracle.result import OracleResult
+
+__all__ = ["beat_metrics"]
+
+
+def beat_metrics(result: OracleResult, beat: int = -1) -> dict[str, float]:
+    """EF, EDV, ESV, SV, IVCT, ET, IVRT, filling time, peak P_lv, aortic pressures, CO of one beat.
+
+    Internal units (ml, s, kPa, ml/s), from :func:`lvenv.events.beat_metrics` applied to the
+    samples of beat ``beat`` (default: the last) of a coupled run; valve events are located by
+    linear interpolation between time steps. ``valid`` is 1.0 when the full valve cycle (mitral
+    closes, aortic opens, aortic closes, mitral opens) was found, else 0.0.
+    """
+    if result.metadata.get("case") != "beat":
+        raise ValueError("beat metrics need a coupled run (case 1–3 or a Circulation), not passive inflation")
+    period = float(result.metadata["period_s"])
+    tr = result.traces
+    n_beats = int(round(tr["t"][-1] / period))
+    if n_beats < 1:
+        raise ValueError(f"the run covers {tr['t'][-1]:.3g} s, less than one beat ({period:.3g} s)")
+    k = range(n_beats)[beat]
+    onset = k * period
+    window = (tr["t"] >= onset - 1e-9) & (tr["t"] <= onset + period + 1e-9)
+    metrics, valid = events.beat_metrics(*(np.asarray(tr[name][window]) for name in ("t", "V", "P_lv", "P_at", "P_c", "P_ao")), period)
+    out = {name: float(value) for name, value in metrics.items()}
+    out["valid"] = float(valid)
+    return out
