@@ -7,7 +7,8 @@ iterations lets the next one double, never beyond the next output pressure.
 The predictor extrapolates the last increment over half the new step, u_pred = uₙ +
 PREDICTOR_DAMPING (uₙ − uₙ₋₁) Δpₙ₊₁/Δpₙ: the wall stiffens with pressure (V(p) is concave), so
 the full linear extrapolation overshoots, by enough at low pressure to invert elements. On the N
-ventricle (h = 6 mm) the damped predictor halves the wall-clock time of Ⓟ.
+ventricle (h = 6 mm) the damped predictor, with the line search of :mod:`fe_oracle.mechanics`,
+halves the wall-clock time of Ⓟ (17 s → 9.5 s).
 """
 
 from __future__ import annotations

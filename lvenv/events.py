@@ -150,7 +150,7 @@ def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
 
 @jax.jit
 def beat_metrics(t, v, p_lv, p_at, p_c, p_ao, period) -> tuple[dict[str, jax.Array], jax.Array]:
-    """Metrics of one beat given as samples (1-D arrays, t from the beat's onset), e.g. FE traces.
+    """Metrics of one beat given as samples (1-D arrays whose first sample is the beat's onset), e.g. FE traces.
 
     The same event detection as the LO heart's (:func:`start`, :func:`update`, :func:`finish`)
     folded over the samples; returns the metrics and whether the full valve cycle was found.

@@ -37,6 +37,22 @@ def test_active_beat_gives_a_physiological_pv_loop(tmp_path, geometry, condition
     assert meta["stretch_min"] > 0.6 and meta["stretch_max"] < 1.45
 
 
+def test_closed_loop_beats_are_physiological(tmp_path):
+    """The fidelity-check setting: N in the default closed loop, second of two beats."""
+    from fe_oracle.metrics import beat_metrics
+    from lvenv.params import Circulation
+
+    circ = Circulation()
+    res = fe_oracle.run(N_UNLOADED, circ, mesh_size=10.0, dt=0.01, beats=2, cache_dir=tmp_path)
+    m, tr = beat_metrics(res), res.traces
+    assert m["valid"] == 1.0
+    assert 0.45 < m["EF"] < 0.7
+    assert 13.0 < m["P_lv_peak"] < 18.0 and 12.0 < m["P_ao_sys"] < 18.0 and 7.0 < m["P_ao_dia"] < 11.0  # kPa
+    assert 0.02 < m["IVCT"] < 0.07 and 0.2 < m["ET"] < 0.32 and 0.03 < m["IVRT"] < 0.1  # s
+    total = tr["V"] + circ.C * tr["P_c"] + circ.Cat * tr["P_at"]
+    assert np.ptp(total) < 1e-9 * total[0]
+
+
 _MPI_SCRIPT = """
 import json, sys
 import dolfinx_solver
