@@ -53,6 +53,38 @@ def test_closed_loop_beats_are_physiological(tmp_path):
     assert np.ptp(total) < 1e-9 * total[0]
 
 
+_UNSEEN = {  # the ends of DESIGN §3's unseen scenarios (fidelity checks), applied to N under ②
+    "vmax_x0.25": {"vmax_factor": 0.25},
+    "vmax_x4": {"vmax_factor": 4.0},
+    "n0_0.5": {"n0": 0.5},
+    "n0_0.9": {"n0": 0.9},
+    "nA_1": {"nA": 1.0},
+    "nA_10": {"nA": 10.0},
+    "tau2_x2": {"tau2": 0.24},
+    "R1_0.1": {"R1": 0.1},
+}
+
+
+@pytest.mark.parametrize("change", list(_UNSEEN.values()), ids=list(_UNSEEN))
+def test_unseen_scenarios_run_a_full_beat(tmp_path, change):
+    """Every extreme of the unseen scenarios completes a beat with a full valve cycle."""
+    import dataclasses
+
+    from fe_oracle.metrics import beat_metrics
+    from lvenv.params import CellParams
+
+    circ = fe_oracle.training_condition(2)
+    cell = CellParams()
+    if "R1" in change:
+        circ = dataclasses.replace(circ, **change)
+    else:
+        cell = dataclasses.replace(cell, **change)
+    res = fe_oracle.run(N_UNLOADED, circ, mesh_size=10.0, dt=0.01, cell=cell, cache_dir=tmp_path)
+    m = beat_metrics(res)
+    assert m["valid"] == 1.0 and 0.2 < m["EF"] < 0.8
+    assert res.metadata["step_cuts"] == 0
+
+
 _MPI_SCRIPT = """
 import json, sys
 import dolfinx_solver
