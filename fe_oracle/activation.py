@@ -3,21 +3,24 @@
     √(∇t · D ∇t) = 1,   D = v_f² f⊗f + v_s² s⊗s + v_n² n⊗n,   t = 0 at the foci
 
 Conduction velocities fibre : sheet : normal = 4 : 2 : 1. The fibre velocity v_f = 0.9 m/s
-(900 mm/s) is ours, an effective value: myocardium conducts at ≈ 0.67 : 0.30 : 0.17 m/s
-(Caldwell et al. 2009, Circ Arrhythm Electrophysiol 2:433), but the model has no Purkinje
-network beyond its four foci, and at v_f = 0.6 m/s the N ventricle would take 125 ms to activate.
-At 0.9 m/s it activates in 82 ms, the total left-ventricular activation time of the normal human
-heart (≈ 80 ms, Durrer et al. 1970, Circulation 41:899); the activation spread, and with it the
-isovolumic contraction time, is then of physiological size. Four endocardial foci (DESIGN §4), given as
-(normalised height z̄ from the base, angle θ from the free-wall centre): (0.6, 70°),
-(0.3, 140°), (0.6, 150°), (0.05, 50°); z̄ = 0 at the base, 1 at the endocardial apex, the
-free-wall centre is the +x direction, θ counter-clockwise seen from the base.
+(900 mm/s) is ours, an effective value. Myocardium conducts at ≈ 0.67 : 0.30 : 0.17 m/s
+(Caldwell et al. 2009, Circ Arrhythm Electrophysiol 2:433), but the model has no Purkinje network
+beyond its four foci, and at v_f = 0.6 m/s the N ventricle would take 125 ms to activate. At
+0.9 m/s it activates in 82 ms, the total left-ventricular activation time of the normal human
+heart (≈ 80 ms, Durrer et al. 1970, Circulation 41:899), so the spread of activation, and with it
+the isovolumic contraction time, is of physiological size.
 
-Discretisation (ours): every curved P2 tetrahedron is split into its 8 straight sub-tetrahedra
-on the 10 P2 nodes, the metric D⁻¹ of each is built from φ and ∇φ at its centroid (:mod:`fe_oracle.fibres`),
-and the Hopf–Lax fixed point is found by :func:`fe_oracle.eikonal.solve`, whose local solver is
-exact on each tetrahedron (a plane front comes out exact; from a point focus the error is first
-order in h). The arrival times live on the P2 nodes and are interpolated to the quadrature points.
+Four endocardial foci (DESIGN §4), given as (normalised height z̄ from the base, angle θ from the
+free-wall centre): (0.6, 70°), (0.3, 140°), (0.6, 150°), (0.05, 50°); z̄ = 0 at the base, 1 at
+the endocardial apex, the free-wall centre is the +x direction, θ counter-clockwise seen from the
+base.
+
+Discretisation (ours): every curved P2 tetrahedron is split into its 8 straight sub-tetrahedra on
+the 10 P2 nodes, the metric D⁻¹ of each is built from φ and ∇φ at its centroid
+(:mod:`fe_oracle.fibres`), and the Hopf–Lax fixed point is found by
+:func:`fe_oracle.eikonal.solve`, whose local solver is exact on each tetrahedron (a plane front
+comes out exact; from a point focus the error is first order in h). The arrival times live on
+the P2 nodes and are interpolated to the quadrature points.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ def beat_metrics(result: OracleResult, beat: int = -1) -> dict[str, float]:
     """EF, EDV, ESV, SV, IVCT, ET, IVRT, filling time, peak P_lv, aortic pressures, CO of one beat.
 
     Internal units (ml, s, kPa, ml/s), from :func:`lvenv.events.beat_metrics` applied to the
-    samples of beat ``beat`` (default: the last) of a coupled run; valve events are located by
+    samples of complete beat ``beat`` (default: the last) of a coupled run; valve events are located by
     linear interpolation between time steps. ``valid`` is 1.0 when the full valve cycle (mitral
     closes, aortic opens, aortic closes, mitral opens) was found, else 0.0.
     """
@@ -24,7 +24,7 @@ def beat_metrics(result: OracleResult, beat: int = -1) -> dict[str, float]:
         raise ValueError("beat metrics need a coupled run (case 1–3 or a Circulation), not passive inflation")
     period = float(result.metadata["period_s"])
     tr = result.traces
-    n_beats = int(round(tr["t"][-1] / period))
+    n_beats = int(np.floor(tr["t"][-1] / period + 1e-9))  # complete beats only
     if n_beats < 1:
         raise ValueError(f"the run covers {tr['t'][-1]:.3g} s, less than one beat ({period:.3g} s)")
     k = range(n_beats)[beat]

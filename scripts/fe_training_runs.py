@@ -3,10 +3,11 @@
     python scripts/fe_training_runs.py [--mesh-size 10] [--dt 0.01] [--cache-dir DIR]
 
 One beat each from the documented initial state (DESIGN §1.2), plus a fidelity-check setting:
-N in the default closed loop (``lvenv.params.Circulation()``), second beat of two. Per run: EDV, ESV (ml), EF,
-peak P_lv (kPa and mmHg), IVCT, ET, IVRT (ms) from :func:`fe_oracle.metrics.beat_metrics`, the
-fibre-stretch range seen by the quadrature-point cells (min, 1st and 99th percentile, max over the
-beat) and the wall-clock time. Results are cached, so a second call only reads them back.
+N in the default closed loop (``lvenv.params.Circulation()``), second beat of two. Per run: EDV,
+ESV (ml), EF, peak P_lv (kPa and mmHg), IVCT, ET, IVRT (ms) from
+:func:`fe_oracle.metrics.beat_metrics`, the fibre-stretch range seen by the quadrature-point
+cells (min, 1st and 99th percentile, max over the run) and the wall-clock time. Results are
+cached, so a second call only reads them back.
 """
 
 from __future__ import annotations
