@@ -48,24 +48,14 @@ DEFAULT_OPTIONS: dict[str, dict[str, Any]] = {
 
 
 @dataclasses.dataclass(frozen=True)
-class FitRow:
-    """One (patient, method) fit. Internal units; wall_time in s (excludes the env's one-off
-    JIT compilation, `compile_time`, shared by all methods of the patient)."""
+class FitRow(MinimizeResult):
+    """One (patient, method) fit: the `MinimizeResult` of `minimize`, plus the evaluations and
+    wall time (s) until the mismatch first fell below 3 % (None if never), and the env's one-off
+    JIT compilation `compile_time` (s; shared by all methods of the patient, not in wall_time)."""
 
-    patient: str
-    method: str
-    parameters: dict[str, float]
-    observation: dict[str, float]
-    targets: dict[str, float]
-    mismatch: float
-    mismatch_per_target: dict[str, float]
-    evaluations: int
-    wall_time: float
     evaluations_to_3pct: int | None
     wall_time_to_3pct: float | None
     compile_time: float
-    stop_reason: dict[str, float]
-    result: MinimizeResult = dataclasses.field(repr=False)
 
 
 def make_env(patient: str | Patient, num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60) -> Any:
@@ -110,12 +100,8 @@ def fit_patients(
             opts = {**DEFAULT_OPTIONS.get(method, {}), **dict((options or {}).get(method, {}))}
             res = minimize(venv, method, budget=budget, seed=seed, progress=progress, **opts)
             evals, wall = res.history.to_target(0.03)
-            rows.append(FitRow(
-                patient=patient.name, method=method, parameters=res.parameters, observation=res.observation,
-                targets=res.targets, mismatch=res.mismatch, mismatch_per_target=res.mismatch_per_target,
-                evaluations=res.evaluations, wall_time=res.wall_time, evaluations_to_3pct=evals,
-                wall_time_to_3pct=wall, compile_time=compile_time, stop_reason=res.stop_reason, result=res,
-            ))
+            fields = {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
+            rows.append(FitRow(**fields, evaluations_to_3pct=evals, wall_time_to_3pct=wall, compile_time=compile_time))
         venv.close()
     if out_dir is not None:
         plot_fits(rows, {_patient(p).name: _patient(p) for p in patients}, out_dir, steps_per_beat)

@@ -30,7 +30,7 @@ def test_fit_drops_the_mismatch_and_writes_a_pv_plot(rows):
     result, out = rows
     assert [(r.patient, r.method) for r in result] == [("normal", "mads"), ("normal", "cma")]
     mads = result[0]
-    own = mads.result.history.mismatch[0]  # MADS evaluates the patient's own parameters first
+    own = mads.history.mismatch[0]  # MADS evaluates the patient's own parameters first
     for r in result:
         assert r.mismatch < 0.5 * own, (r.method, r.mismatch, own)
         assert r.evaluations == 64 and r.wall_time > 0
