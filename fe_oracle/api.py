@@ -9,16 +9,19 @@ import time
 
 import lvenv  # noqa: F401
 from lvenv.geometry import Geometry
-from lvenv.params import CellParams, Circulation
+from lvenv.params import CellParams, LOParams
+from lvenv.validation import InputError, choice, integer, real
 
 from fe_oracle import cache
 from fe_oracle.cases import Passive, resolve_case
 from fe_oracle.material import Guccione
 from fe_oracle.result import OracleResult
 
-__all__ = ["BACKENDS", "INSTALL_HINT", "run", "load_backend"]
+__all__ = ["BACKENDS", "DEFAULT_DT", "INSTALL_HINT", "run", "load_backend"]
 
-BACKENDS = ("dolfinx",)
+BACKENDS = ("dolfinx", "multielement")
+#: Default time step (s) per backend.
+DEFAULT_DT = {"dolfinx": 0.005, "multielement": 0.001}
 INSTALL_HINT = "pip install -e '.[fe]'"
 
 
@@ -37,7 +40,7 @@ def run(
     backend: str = "dolfinx",
     *,
     mesh_size: float = 6.0,
-    dt: float = 0.005,
+    dt: float | None = None,
     beats: int = 1,
     duration: float | None = None,
     cell: CellParams | None = None,
@@ -47,12 +50,17 @@ def run(
     cache_dir: str | pathlib.Path | None = None,
     use_cache: bool = True,
     progress: bool | None = None,
+    arrangement: str | None = None,
+    n_elements: int | None = None,
+    lo: LOParams | None = None,
 ) -> OracleResult:
     """Run the FE oracle on ``geometry`` (unloaded, mm) for ``case``.
 
     ``case``: ``"passive"`` (inflation 0 → 4 kPa), a :class:`~fe_oracle.cases.Passive`, a
     training condition 1–3 (Table 2) or any :class:`~lvenv.params.Circulation` (open or closed
-    loop). ``mesh_size`` is the target edge length h (mm), ``dt`` the time step (s), ``beats``
+    loop). ``mesh_size`` is the target edge length h (mm), ``dt`` the time step (s; default
+    :data:`DEFAULT_DT` of the backend: 5 ms for dolfinx, 1 ms for multielement, whose valve
+    timings need it), ``beats``
     the number of beats from the documented initial state (LV at passive equilibrium with Pat,
     P_c(0) = Pc0, cells at rest); ``duration`` (s), if given, ends the run earlier. ``max_cuts`` bounds the halvings of a failing step (load or
     time), ``newton_max_it`` the Newton iterations per solve.
@@ -62,21 +70,29 @@ def run(
     cached under ``cache_dir`` (``use_cache=False`` neither reads nor writes the cache).
     ``progress``: a tqdm bar over simulated time (passive: over the load); ``None`` shows it only
     on a terminal, and only on MPI rank 0.
+
+    ``backend="multielement"``: the §1.4 multi-element LO heart (:mod:`fe_oracle.multielement_backend`,
+    no DOLFINx, seconds): ``arrangement`` ``"parallel"`` (default) or ``"series"``, ``n_elements``
+    (default 256), ``lo`` the LO parameters (default: the paper's trained values for the N and HF
+    geometries). ``mesh_size``, ``material``, ``max_cuts``, ``newton_max_it`` and ``progress``
+    do not apply to it; ``arrangement``, ``n_elements`` and ``lo`` apply to it only.
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    choice("backend", backend, BACKENDS)
     if not isinstance(geometry, Geometry):
-        raise TypeError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
-    if not mesh_size > 0:
-        raise ValueError(f"mesh_size = {mesh_size!r} mm must be positive")
-    if not dt > 0:
-        raise ValueError(f"dt = {dt!r} s must be positive")
-    if int(beats) != beats or beats < 1:
-        raise ValueError(f"beats = {beats!r} must be a positive integer")
+        raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
+    mesh_size = real("mesh_size", mesh_size, 0.0, lo_open=True)
+    dt = real("dt", DEFAULT_DT[backend] if dt is None else dt, 0.0, 1.0, lo_open=True)
+    beats = integer("beats", beats, 1)
+    if duration is not None:
+        duration = real("duration", duration, 0.0, lo_open=True)
     record = resolve_case(case)
     cell = CellParams() if cell is None else cell
-    material = Guccione() if material is None else material
     passive = isinstance(record, Passive)
+    if backend == "multielement":
+        return _run_multielement(geometry, record, cell, arrangement, n_elements, lo, dt=dt, beats=int(beats), duration=duration, cache_dir=cache_dir, use_cache=use_cache)
+    if (arrangement, n_elements, lo) != (None, None, None):
+        raise ValueError(f"arrangement, n_elements and lo apply to backend 'multielement' only, not {backend!r}")
+    material = Guccione() if material is None else material
     inputs = {
         "backend": backend,
         "geometry": geometry,
@@ -101,10 +117,39 @@ def run(
         traces, meta, log = be.run_beat(
             geometry, record, cell, material, mesh_size, dt, int(beats), duration=duration, max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show
         )
-    meta = dict(meta, case="passive" if passive else "beat", key=k, code_version=cache.code_version(), mesh_size_mm=float(mesh_size), total_s=time.perf_counter() - t0)
+    return _finish(traces, meta, log, backend, passive, k, float(mesh_size), t0, dt, beats, directory if use_cache else None)
+
+
+def _finish(traces, meta, log, backend, passive, k, mesh_size, t0, dt, beats, directory) -> OracleResult:
+    """The result with the metadata every backend shares, stored in the cache ``directory`` (None: not)."""
+    meta = dict(meta, backend=backend, case="passive" if passive else "beat", key=k, code_version=cache.code_version(backend), mesh_size_mm=mesh_size, total_s=time.perf_counter() - t0)
     if not passive:
         meta.update(dt_s=float(dt), beats=int(beats))
     result = OracleResult(traces, meta, log)
-    if use_cache:
+    if directory is not None:
         cache.store(directory, k, result)
     return result
+
+
+def _run_multielement(geometry, record, cell, arrangement, n_elements, lo, *, dt, beats, duration, cache_dir, use_cache) -> OracleResult:
+    """``run`` with ``backend="multielement"`` (:mod:`fe_oracle.multielement_backend`)."""
+    from fe_oracle import multielement_backend as be
+
+    arr = be.arrangement(arrangement, n_elements)
+    lo = be.default_lo(geometry) if lo is None else lo
+    if not isinstance(lo, LOParams):
+        raise ValueError(f"lo = {lo!r} must be an lvenv.params.LOParams or None")
+    passive = isinstance(record, Passive)
+    inputs = {"backend": "multielement", "geometry": geometry, "case": record, "arrangement": arr, "lo": lo}
+    if not passive:
+        inputs.update(dt=float(dt), beats=beats, duration=duration, cell=cell)
+    directory = cache.default_dir() if cache_dir is None else pathlib.Path(cache_dir)
+    k = cache.key(inputs)
+    if use_cache and (hit := cache.load(directory, k)) is not None:
+        return hit
+    t0 = time.perf_counter()
+    if passive:
+        traces, meta, log = be.run_passive(geometry, arr, lo, record.pressures())
+    else:
+        traces, meta, log = be.run_beat(geometry, record, cell, arr, lo, dt, beats, duration=duration)
+    return _finish(traces, meta, log, "multielement", passive, k, None, t0, dt, beats, directory if use_cache else None)

@@ -1,13 +1,16 @@
 """On-disk cache of oracle results, keyed by a content hash of every input (pure Python).
 
-Key = SHA-256 of a canonical JSON of: geometry, case, mesh size, dt, beats, material, cell and
-circulation parameters, solver options, and the *code version* — a hash of the source of
-``fe_oracle`` and of the ``lvenv`` modules it runs (cell, circulation, geometry, params).
-Changing any of them gives a new key, so stale results are never reused.
+Key = SHA-256 of a canonical JSON of: backend, geometry, case, mesh size, dt, beats, material,
+cell and circulation parameters (every field by name, so a new or renamed field changes it too),
+solver options, and the backend's *code version* — a hash of the source files whose code its
+results depend on (:data:`CODE`: the backend's own modules and the ``lvenv`` equations they
+run). Changing any of them gives a new key, so stale results are never reused, while an edit
+elsewhere (a docstring of the front end, another backend) keeps the cached runs.
 
-An entry is one ``<key>.npz`` file (traces plus the metadata and solver log as JSON). It is
-written to a temporary file in the same directory and ``os.replace``-d into place, so a killed
-run leaves either the complete entry or none (at most a ``.tmp`` file, which is ignored).
+An entry is one ``<key>.npz`` file (traces plus the metadata and solver log as JSON), written
+atomically in the safe format of :mod:`lvenv.archive`, so a killed run leaves either the
+complete entry or none, and loading an entry never unpickles. A damaged entry is reported
+(:class:`lvenv.archive.ArchiveError`, with its path) rather than silently recomputed.
 Default directory: ``$LVENV_FE_CACHE`` or ``~/.cache/lvenv/fe_oracle``.
 """
 
@@ -19,31 +22,39 @@ import hashlib
 import json
 import os
 import pathlib
-import tempfile
 
 import numpy as np
+
+from lvenv import archive
 
 from fe_oracle.result import OracleResult
 
 __all__ = ["default_dir", "code_version", "key", "load", "store"]
 
-_LVENV_MODULES = ("cell.py", "circulation.py", "geometry.py", "params.py")
+#: Per backend, the source files its results depend on (package-relative paths).
+CODE = {
+    "dolfinx": tuple(f"fe_oracle/{name}.py" for name in (
+        "activation", "cases", "coupled_beat", "dolfinx_backend", "eikonal", "fibres", "material",
+        "mechanics", "mesh", "passive", "quadrature_cells", "result",
+    )) + ("lvenv/cell.py", "lvenv/circulation.py", "lvenv/geometry.py"),
+    "multielement": ("fe_oracle/cases.py", "fe_oracle/multielement_backend.py", "fe_oracle/result.py", "lvenv/cell.py",
+                     "lvenv/circulation.py", "lvenv/coupling.py", "lvenv/events.py", "lvenv/geometry.py",
+                     "lvenv/integrator.py", "lvenv/multielement.py"),
+}
 
 
 def default_dir() -> pathlib.Path:
     return pathlib.Path(os.environ.get("LVENV_FE_CACHE", pathlib.Path.home() / ".cache" / "lvenv" / "fe_oracle"))
 
 
-@functools.lru_cache(maxsize=1)
-def code_version() -> str:
-    """SHA-256 (first 16 hex digits) of the oracle's source and the lvenv modules it uses."""
-    here = pathlib.Path(__file__).resolve().parent
-    lvenv_dir = here.parent / "lvenv"
-    files = sorted(here.glob("*.py")) + [lvenv_dir / name for name in _LVENV_MODULES]
+@functools.lru_cache(maxsize=None)
+def code_version(backend: str = "dolfinx") -> str:
+    """SHA-256 (first 16 hex digits) of the source files of :data:`CODE` for ``backend``."""
+    root = pathlib.Path(__file__).resolve().parent.parent
     digest = hashlib.sha256()
-    for path in files:
-        digest.update(path.name.encode())
-        digest.update(path.read_bytes())
+    for name in CODE[backend]:
+        digest.update(name.encode())
+        digest.update((root / name).read_bytes())
     return digest.hexdigest()[:16]
 
 
@@ -63,7 +74,7 @@ def _canonical(value):
 
 def key(inputs: dict) -> str:
     """Content hash of ``inputs`` (dataclasses, numbers, strings) and the code version."""
-    blob = json.dumps({"inputs": _canonical(inputs), "code": code_version()}, sort_keys=True, default=float)
+    blob = json.dumps({"inputs": _canonical(inputs), "code": code_version(inputs.get("backend", "dolfinx"))}, sort_keys=True, default=float)
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
@@ -76,27 +87,12 @@ def load(directory, k: str) -> OracleResult | None:
     path = _path(directory, k)
     if not path.exists():
         return None
-    with np.load(path, allow_pickle=False) as data:
-        traces = {name[len("trace_"):]: np.array(data[name]) for name in data.files if name.startswith("trace_")}
-        extra = json.loads(str(data["json"]))
+    arrays, extra = archive.load(path, "FE oracle cache entry")
+    traces = {name[len("trace_"):]: value for name, value in arrays.items() if name.startswith("trace_")}
     return OracleResult(traces, extra["metadata"], extra["log"], from_cache=True)
 
 
 def store(directory, k: str, result: OracleResult) -> pathlib.Path:
     """Atomically write ``result`` under key ``k``; returns the entry's path."""
-    directory = pathlib.Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    final = _path(directory, k)
-    payload = {f"trace_{name}": np.asarray(v) for name, v in result.traces.items()}
-    payload["json"] = np.array(json.dumps({"metadata": _canonical(result.metadata), "log": _canonical(result.log)}, default=float))
-    fd, tmp = tempfile.mkstemp(prefix=f".{k}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, final)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
-    return final
+    arrays = {f"trace_{name}": np.asarray(v) for name, v in result.traces.items()}
+    return archive.save(_path(directory, k), arrays, {"metadata": _canonical(result.metadata), "log": _canonical(result.log)})

@@ -17,6 +17,7 @@ import dataclasses
 import lvenv  # noqa: F401
 from lvenv import presets
 from lvenv.params import Circulation
+from lvenv.validation import integer, real
 
 __all__ = ["Passive", "training_condition", "resolve_case", "N_UNLOADED", "HF_UNLOADED"]
 
@@ -26,15 +27,27 @@ HF_UNLOADED = presets.HF_UNLOADED
 
 @dataclasses.dataclass(frozen=True)
 class Passive:
-    """Passive inflation Ⓟ: cavity pressure 0 → ``p_max`` kPa, volume reported at ``n_points`` pressures."""
+    """Passive inflation Ⓟ: cavity pressure 0 → ``p_max`` kPa, volume reported at ``n_points``
+    pressures; with ``p_min`` < 0 also a deflation 0 → ``p_min`` (suction compressing the cavity
+    below V0, which pins the compression branch of the LO law) at ``n_points`` pressures."""
 
     p_max: float = 4.0
     n_points: int = 9
+    p_min: float = 0.0
+
+    def __post_init__(self) -> None:
+        real("Passive.p_max", self.p_max, 0.0, 40.0, lo_open=True)
+        real("Passive.p_min", self.p_min, -10.0, 0.0)
+        integer("Passive.n_points", self.n_points, 2)
 
     def pressures(self):
+        """The sorted pressures (kPa) at which the volume is reported."""
         import numpy as np
 
-        return np.linspace(0.0, self.p_max, self.n_points)
+        up = np.linspace(0.0, self.p_max, self.n_points)
+        if self.p_min == 0.0:
+            return up
+        return np.concatenate([np.linspace(self.p_min, 0.0, self.n_points)[:-1], up])
 
 
 def training_condition(k: int) -> Circulation:

@@ -19,7 +19,7 @@ staggered: over a step n → n+1 the fast distortion states ζ and the length de
 implicit in the current displacement, the slow populations (S, W) are taken from a predictor
 (the cell ODE advanced with the extrapolated stretch); after convergence the cell state is
 advanced again with the converged λ
-(:mod:`fe_oracle.active`).
+(:mod:`fe_oracle.quadrature_cells`).
 """
 
 from __future__ import annotations
@@ -37,6 +37,8 @@ import dolfinx.fem.petsc
 import ufl
 from mpi4py import MPI
 from petsc4py import PETSc
+
+from lvenv.cell import length_dependence
 
 from fe_oracle.material import Guccione
 from fe_oracle.mesh import BASE, ENDO, EPI, TaggedMesh
@@ -151,8 +153,7 @@ class ActiveTension:
 
     def tension(self, lam):
         k = self.coefficients
-        lam_c = ufl.min_value(lam, 1.2)
-        h = ufl.max_value(0.0, 1.0 + k["beta0"] * (lam_c + ufl.min_value(lam_c, 0.87) - 1.87))
+        h = length_dependence(lam, k["beta0"], ufl.min_value, ufl.max_value)
         zs = self.zeta(lam, self.zeta_s, k["A"], k["cs"])
         zw = self.zeta(lam, self.zeta_w, k["A"], k["cw"])
         return k["scale"] * h * (self.S * (zs + 1.0) + self.W * zw)

@@ -23,23 +23,25 @@ PREDICTOR_DAMPING = 0.5
 
 
 def inflate(solid, pressures, *, first_step: float = 0.25, max_cuts: int = 6, log: list | None = None, bar=None):
-    """Volumes (ml) of ``solid`` at each of the increasing ``pressures`` (kPa); ``pressures[0]`` must be 0.
+    """Volumes (ml) of ``solid`` at each of the ``pressures`` (kPa), which start at 0 and then
+    increase (inflation) or decrease (deflation, a suction that compresses the cavity).
 
-    ``bar``: an optional tqdm bar, advanced by the pressure reached (kPa).
+    ``bar``: an optional tqdm bar, advanced by the magnitude of the pressure reached (kPa).
 
     Raises :class:`OracleDidNotConverge` with the pressure reached and the last residual.
     """
     pressures = np.asarray(pressures, dtype=float)
-    if pressures[0] != 0.0 or np.any(np.diff(pressures) <= 0):
-        raise ValueError("pressures must start at 0 and increase")
+    sign = 1.0 if len(pressures) < 2 or pressures[-1] > 0 else -1.0
+    if pressures[0] != 0.0 or np.any(np.diff(sign * pressures) <= 0):
+        raise ValueError("pressures must start at 0 and then increase, or decrease, strictly")
     log = [] if log is None else log
     volumes = [solid.volume()]
     p_now, step = 0.0, first_step
     u_prev, p_prev = None, None
     for target in pressures[1:]:
         cuts = 0
-        while p_now < target - 1e-12:
-            p_next = min(p_now + step, target)
+        while sign * (target - p_now) > 1e-12:
+            p_next = p_now + sign * min(step, sign * (target - p_now))
             u_now = solid.u.x.array.copy()
             if u_prev is not None:
                 solid.u.x.array[:] = u_now + PREDICTOR_DAMPING * (u_now - u_prev) * (p_next - p_now) / (p_now - p_prev)
@@ -56,7 +58,7 @@ def inflate(solid, pressures, *, first_step: float = 0.25, max_cuts: int = 6, lo
                 continue
             cuts = 0
             if bar is not None:
-                bar.update(p_next - p_now)
+                bar.update(abs(p_next - p_now))
             u_prev, p_prev, p_now = u_now, p_now, p_next
             if report.iterations <= 10:
                 step *= 2.0

@@ -17,7 +17,7 @@ class OracleResult:
     """Traces and metadata of one oracle run.
 
     ``traces``: ``t`` (s), ``V`` (ml), ``P_lv`` and ``P_ao`` (kPa), equal-length 1-D arrays. For
-    the passive case ``t`` is the load parameter (0 → 1), ``P_lv`` the applied pressure and
+    the passive case ``t`` is the load parameter P / p_max (0 → 1; negative on a deflation branch), ``P_lv`` the applied pressure and
     ``P_ao`` is NaN. Beats also carry ``P_c`` (Windkessel capacitor) and ``P_at`` (atrium), kPa;
     ``V`` is the 0-D volume state, which the FE cavity volume matches within ``volume_tol_ml``. ``metadata``: inputs, mesh size, V0, timings, stretch range (JSON-able).
     ``log``: one record per nonlinear solve (time, pressure, Newton reason and iterations,

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from lvenv.params import Circulation
 
-__all__ = ["Flows", "flows", "windkessel_derivatives", "aortic_pressure", "total_volume", "beat_period"]
+__all__ = ["Flows", "flows", "valves_open", "windkessel_derivatives", "jacobian", "aortic_pressure", "total_volume", "beat_period"]
 
 
 class Flows(tuple):
@@ -56,6 +56,11 @@ def atrial_pressure(p_at_state, circ: Circulation):
     return jnp.where(circ.closed_loop > 0.5, p_at_state, circ.Pat)
 
 
+def valves_open(p_lv, p_c, p_at_state, circ: Circulation):
+    """(mitral open, aortic open): P_at > P_lv and P_lv > P_c."""
+    return atrial_pressure(p_at_state, circ) - p_lv > 0.0, p_lv - p_c > 0.0
+
+
 def flows(p_lv, p_c, p_at_state, circ: Circulation) -> Flows:
     """Mitral, aortic and peripheral flows (ml/s) for LV, capacitor and atrial-state pressures (kPa)."""
     p_at = atrial_pressure(p_at_state, circ)
@@ -72,6 +77,22 @@ def windkessel_derivatives(q: Flows, circ: Circulation):
     d_pc = (q.aortic - q.peripheral) / circ.C
     d_pat = circ.closed_loop * (q.peripheral - q.mitral) / circ.Cat
     return d_v, d_pc, d_pat
+
+
+def jacobian(mitral_open, aortic_open, circ: Circulation) -> list[list]:
+    """∂(dV/dt, dP_c/dt, dP_at/dt) / ∂(P_lv, P_c, P_at state) for the given valve states (3 × 3).
+
+    An open valve conducts g_mv = 1/Rmv, g_ao = 1/(R1 + R2); a shut one not at all. Units: ml/(s·kPa)
+    in the first row, 1/s in the others.
+    """
+    g_mv = jnp.where(mitral_open, 1.0 / circ.Rmv, 0.0)
+    g_ao = jnp.where(aortic_open, 1.0 / (circ.R1 + circ.R2), 0.0)
+    closed = circ.closed_loop
+    return [
+        [-(g_mv + g_ao), g_ao, closed * g_mv],
+        [g_ao / circ.C, -(g_ao + 1.0 / circ.R3) / circ.C, closed / (circ.R3 * circ.C)],
+        [closed * g_mv / circ.Cat, closed / (circ.R3 * circ.Cat), -closed * (closed / circ.R3 + g_mv) / circ.Cat],
+    ]
 
 
 def aortic_pressure(p_c, q: Flows, circ: Circulation):

@@ -2,8 +2,15 @@
 
 On import, lvenv asks XLA for one CPU device per core (``jax_num_cpu_devices``) unless JAX's
 backend is already initialised or ``LVENV_CPU_DEVICES`` says otherwise. Batch-last arrays are
-then padded to a multiple of the device count (with copies of the last member, which cannot
-affect the others: members never interact) and sharded along the batch axis.
+then padded (with copies of the last member, which cannot affect the others: members never
+interact) and sharded along the batch axis.
+
+Padding also makes a member's result independent of the batch it runs in. XLA vectorises the
+elementwise loops over members and computes a remainder that does not fill a SIMD register by
+other instructions (other polynomial kernels for exp and log, no FMA), so a member's last bits
+would depend on its position and the batch size. Every batch is therefore padded to a multiple
+of :data:`LANES` members per device, at least one full vector of the widest registers
+(AVX-512: 8 float64 or 16 float32), so that every member takes the vector path.
 """
 
 from __future__ import annotations
@@ -14,9 +21,11 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-__all__ = ["request_cpu_devices", "shard_members", "MIN_MEMBERS_PER_DEVICE"]
+__all__ = ["request_cpu_devices", "shard_members", "padded_size", "MIN_MEMBERS_PER_DEVICE", "LANES"]
 
 MIN_MEMBERS_PER_DEVICE = 64
+#: Members per device are padded to a multiple of this (module docstring).
+LANES = 8
 
 
 def request_cpu_devices() -> None:
@@ -28,26 +37,41 @@ def request_cpu_devices() -> None:
         pass
 
 
+def _devices_used(n_members: int) -> int:
+    count = len(jax.devices())
+    return 1 if count == 1 or n_members < MIN_MEMBERS_PER_DEVICE * count else count
+
+
+def padded_size(n_members: int) -> int:
+    """Members after padding: a multiple of :data:`LANES` times the devices used."""
+    block = LANES * _devices_used(n_members)
+    return -(-n_members // block) * block
+
+
 def shard_members(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim - 1):
-    """Pad and shard every leaf along its batch axis. Returns ``(tree, padded_size)``.
+    """Pad every leaf along its batch axis to :func:`padded_size` and shard it over the devices
+    (small batches, fewer than :data:`MIN_MEMBERS_PER_DEVICE` per device, stay on one).
+    Returns ``(tree, padded_size)``."""
+    size = padded_size(n_members)
+    used = _devices_used(n_members)
 
-    Small batches (fewer than :data:`MIN_MEMBERS_PER_DEVICE` per device) stay on one device.
-    """
-    devices = jax.devices()
-    if len(devices) == 1 or n_members < MIN_MEMBERS_PER_DEVICE * len(devices):
-        return tree, n_members
-    pad = (-n_members) % len(devices)
-    mesh = Mesh(np.array(devices), ("members",))
-
-    def place(leaf):
+    def pad(leaf):
         leaf = np.asarray(leaf)
         axis = batch_axis_of(leaf)
-        if pad:
-            widths = [(0, 0)] * leaf.ndim
-            widths[axis] = (0, pad)
-            leaf = np.pad(leaf, widths, mode="edge")
+        if size == n_members:
+            return leaf
+        widths = [(0, 0)] * leaf.ndim
+        widths[axis] = (0, size - n_members)
+        return np.pad(leaf, widths, mode="edge")
+
+    if used == 1:
+        return jax.tree.map(pad, tree), size
+    mesh = Mesh(np.array(jax.devices()), ("members",))
+
+    def place(leaf):
+        leaf = pad(leaf)
         spec = [None] * leaf.ndim
-        spec[axis] = "members"
+        spec[batch_axis_of(leaf)] = "members"
         return jax.device_put(leaf, NamedSharding(mesh, PartitionSpec(*spec)))
 
-    return jax.tree.map(place, tree), n_members + pad
+    return jax.tree.map(place, tree), size

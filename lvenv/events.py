@@ -30,12 +30,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-__all__ = ["METRIC_NAMES", "Accumulator", "start", "update", "finish", "beat_metrics"]
-
-METRIC_NAMES = (
-    "EF", "EDV", "ESV", "SV", "IVCT", "ET", "IVRT", "filling_time",
-    "P_lv_peak", "P_ao_sys", "P_ao_dia", "P_ao_pulse", "P_ao_mean", "CO",
-)
+__all__ = ["Accumulator", "start", "update", "finish", "beat_metrics"]
 
 
 @jax.tree_util.register_dataclass
@@ -126,7 +121,8 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
 
 
 def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
-    """Metrics of the beat (internal units) and whether the full valve cycle was found."""
+    """Metrics of the beat (internal units, in the order of :data:`lvenv.metrics.METRIC_NAMES`)
+    and whether the full valve cycle was found."""
     sv = acc.v_mvc - acc.v_avc
     valid = (acc.found == 4) & (sv >= 0.0)
     metrics = {

@@ -48,12 +48,14 @@ import math
 import numpy as np
 from scipy import integrate
 
+from lvenv.validation import InputError, real
+
 __all__ = ["Geometry", "GeometryError", "cavity_volume", "wall_volume", "surfaces", "meridian"]
 
 _MM3_PER_ML = 1000.0
 
 
-class GeometryError(ValueError):
+class GeometryError(InputError):
     """An impossible geometry (e.g. a wall thicker than the radius)."""
 
 
@@ -88,10 +90,10 @@ class Surfaces:
 
 
 def _ranged(name: str, value: float, lo: float, hi: float, *, lo_open: bool = False) -> None:
-    bad = not math.isfinite(value) or value > hi or (value <= lo if lo_open else value < lo)
-    if bad:
-        left = "(" if lo_open else "["
-        raise GeometryError(f"geometry.{name} = {value!r} is outside the allowed range {left}{lo}, {hi}]")
+    try:
+        real(f"geometry.{name}", value, lo, hi, lo_open=lo_open)
+    except ValueError as err:
+        raise GeometryError(str(err)) from None
 
 
 def validate(g: Geometry) -> None:
@@ -150,7 +152,7 @@ def meridian(g: Geometry, which: str = "inner", n: int = 64) -> np.ndarray:
     latitude at which the surface meets the basal plane (C0 for the outer surface).
     """
     if which not in ("inner", "outer"):
-        raise ValueError(f"which must be 'inner' or 'outer', got {which!r}")
+        raise InputError(f"which must be 'inner' or 'outer', got {which!r}")
     s = surfaces(g)
     a, b = (s.a_inner, s.b_inner) if which == "inner" else (s.a_outer, s.b_outer)
     sin_base = math.copysign((abs(s.z_base) / b) ** g.e, s.z_base)

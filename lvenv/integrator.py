@@ -31,43 +31,44 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-__all__ = ["GAMMA", "ORDER", "ros2_step", "ad_jacobian"]
+__all__ = ["GAMMA", "ORDER", "ros2_step", "ad_jacobian", "is_zero", "lu_factor", "lu_solve"]
 
 GAMMA = 1.0 + 1.0 / 2.0**0.5
 ORDER = 2
 
 
-def _is_zero(x) -> bool:
+def is_zero(x) -> bool:
     """A structural zero: the Python literal 0.0 (arrays are never treated as zero)."""
     return isinstance(x, float) and x == 0.0
 
 
-def _lu_factor(a: list[list]) -> list[list]:
+def lu_factor(a: list[list]) -> list[list]:
     """Doolittle LU (unit lower) on a list of lists of arrays, skipping structural zeros."""
     n = len(a)
     a = [row[:] for row in a]
     for k in range(n):
         inv_pivot = 1.0 / a[k][k]
         for i in range(k + 1, n):
-            if _is_zero(a[i][k]):
+            if is_zero(a[i][k]):
                 continue
             a[i][k] = a[i][k] * inv_pivot
             for j in range(k + 1, n):
-                if not _is_zero(a[k][j]):
+                if not is_zero(a[k][j]):
                     a[i][j] = a[i][j] - a[i][k] * a[k][j]
     return a
 
 
-def _lu_solve(lu: list[list], b: list) -> list:
+def lu_solve(lu: list[list], b: list) -> list:
+    """Solve with the factors of :func:`lu_factor` (forward then back substitution)."""
     n = len(b)
     y = b[:]
     for i in range(n):
         for j in range(i):
-            if not _is_zero(lu[i][j]):
+            if not is_zero(lu[i][j]):
                 y[i] = y[i] - lu[i][j] * y[j]
     for i in reversed(range(n)):
         for j in range(i + 1, n):
-            if not _is_zero(lu[i][j]):
+            if not is_zero(lu[i][j]):
                 y[i] = y[i] - lu[i][j] * y[j]
         y[i] = y[i] / lu[i][i]
     return y
@@ -104,9 +105,9 @@ def ros2_step(f: Callable, y: jax.Array, h: jax.Array, u0, u1, du0=None, jacobia
         forcing = jnp.zeros_like(y)
     else:
         forcing = gh * jax.jvp(lambda uu: f(uu, y), (u0,), (du0,))[1]
-    m = [[(1.0 if i == j else 0.0) - (gh * jac[i][j] if not _is_zero(jac[i][j]) else 0.0) for j in range(n)] for i in range(n)]
-    lu = _lu_factor(m)
-    k1 = jnp.stack(_lu_solve(lu, [f0[i] + forcing[i] for i in range(n)]))
+    m = [[(1.0 if i == j else 0.0) - (gh * jac[i][j] if not is_zero(jac[i][j]) else 0.0) for j in range(n)] for i in range(n)]
+    lu = lu_factor(m)
+    k1 = jnp.stack(lu_solve(lu, [f0[i] + forcing[i] for i in range(n)]))
     f1 = f(u1, y + h * k1)
-    k2 = jnp.stack(_lu_solve(lu, [f1[i] - 2.0 * k1[i] - forcing[i] for i in range(n)]))
+    k2 = jnp.stack(lu_solve(lu, [f1[i] - 2.0 * k1[i] - forcing[i] for i in range(n)]))
     return y + (1.5 * h) * k1 + (0.5 * h) * k2

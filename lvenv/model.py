@@ -19,7 +19,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from lvenv import cell, circulation, coupling
-from lvenv.params import CellParams, Circulation, Heart, LOParams, cavity_volumes
+from lvenv.integrator import is_zero
+from lvenv.params import CellParams, Circulation, Heart, LOParams, cavity_volumes, locate
 
 __all__ = ["ModelParams", "Observables", "N_STATES", "IDX_V", "IDX_PC", "IDX_PAT", "rhs", "rhs_at_calcium", "jacobian", "observe", "initial_state", "model_params"]
 
@@ -36,6 +37,20 @@ class ModelParams:
     lo: LOParams
     cell: CellParams
     circ: Circulation
+
+    def get(self, name: str):
+        """The value of the LO, cell or circulation parameter ``name``."""
+        return getattr(getattr(self, _FIELD[locate(name)]), name)
+
+    def replace(self, **values) -> "ModelParams":
+        """A copy with parameters changed by name (traceable; V0 is not recomputed)."""
+        parts: dict[str, dict] = {}
+        for name, value in values.items():
+            parts.setdefault(_FIELD[locate(name)], {})[name] = value
+        return dataclasses.replace(self, **{part: dataclasses.replace(getattr(self, part), **mine) for part, mine in parts.items()})
+
+
+_FIELD = {"lo": "lo", "cell": "cell", "circulation": "circ"}  # Heart part → ModelParams field
 
 
 def model_params(heart: Heart) -> ModelParams:
@@ -80,7 +95,7 @@ def observe(y, p: ModelParams) -> Observables:
 
 def rhs(t, y, p: ModelParams):
     """dy/dt of the LO heart; ``t`` is the time since the beat's onset (s)."""
-    return rhs_at_calcium(cell.calcium(t, p.cell), y, p, cell.rates(p.cell))
+    return rhs_at_calcium(coupling.calcium(t, p.lo, p.cell), y, p, cell.rates(p.cell))
 
 
 def rhs_at_calcium(ca, y, p: ModelParams, k: cell.Rates):
@@ -105,8 +120,26 @@ def initial_state(p: ModelParams) -> np.ndarray:
     return np.concatenate([y_cell, np.stack([v, np.broadcast_to(p.circ.Pc0, shape), np.broadcast_to(p.circ.Pat, shape)])])
 
 
+def _mul(a, b):
+    """a·b, keeping the Python float 0.0 as a structural zero."""
+    return 0.0 if is_zero(a) or is_zero(b) else a * b
+
+
+def _add(a, b):
+    """a + b, keeping the Python float 0.0 as a structural zero."""
+    return b if is_zero(a) else a if is_zero(b) else a + b
+
+
 def jacobian(ca, y, p: ModelParams, k: cell.Rates, lookahead=None) -> list[list]:
     """Analytic ∂f/∂y of :func:`rhs_at_calcium` as a 9×9 list of lists (row i = ∂f_i/∂y).
+
+    Composed by the chain rule from the parts' own partials: the cell's
+    (:func:`lvenv.cell.jacobian`, :func:`lvenv.cell.active_tension_partials`), the LO maps'
+    (∂λ/∂V = μ1/V0, dPpass/dV) and the circulation's (:func:`lvenv.circulation.jacobian`)::
+
+        ∂P_lv/∂y   = μ2 ∂Ta/∂y + (μ2 ∂Ta/∂λ μ1/V0 + dPpass/dV) e_V
+        circulation rows = D[:, P_lv] ∂P_lv/∂y + D[:, P_c] e_Pc + D[:, P_at] e_Pat
+        cell rows  = J_cell + ∂f/∂λ (μ1/V0) e_V + ∂f/∂(dλ/dt) (μ1/V0) (row of dV/dt)
 
     Structural zeros are the Python float ``0.0`` so that the unrolled LU can skip them. At the
     kinks (clamps, |ζw|) the one-sided derivative of the branch selected by the state is used,
@@ -119,90 +152,31 @@ def jacobian(ca, y, p: ModelParams, k: cell.Rates, lookahead=None) -> list[list]
     treats the stiff valve flow implicitly instead of chattering across the switch. The matrix
     keeps wᵀJ = 0, so the closed-loop volume stays conserved.
     """
-    c, b, s, w, zs, zw, v, p_c, p_at_state = (y[i] for i in range(N_STATES))
-    cp, lo, circ = p.cell, p.lo, p.circ
-    closed = circ.closed_loop
-    m1 = lo.mu1 / p.v0
+    lo, circ = p.lo, p.circ
+    y_cell, v, p_c, p_at_state = y[: cell.N_STATES], y[IDX_V], y[IDX_PC], y[IDX_PAT]
+    dlam_dv = lo.mu1 / p.v0
     lam = coupling.stretch(v, p.v0, lo)
-    below_cap = lam < 1.2
-    lam_c = jnp.minimum(lam, 1.2)
-    # active tension Ta = K h(λ) X and its partials
-    b0 = cell.beta0(cp.n0)
-    h_raw = 1.0 + b0 * (lam_c + jnp.minimum(lam_c, 0.87) - 1.87)
-    h = jnp.maximum(0.0, h_raw)
-    dh_dv = jnp.where((h_raw > 0.0) & below_cap, b0 * jnp.where(lam_c < 0.87, 2.0, 1.0), 0.0) * m1
-    kt = cp.Sa * cp.Tref / cp.rs
-    x_bridges = s * (zs + 1.0) + w * zw
-    # P_lv = μ2 Ta + Ppass(V)
-    x = v / p.v0 - 1.0
-    dppass = jnp.where(
-        x <= 0.0,
-        lo.alpha * lo.beta * lo.gamma * jnp.exp(-lo.beta * lo.gamma * jnp.minimum(x, 0.0)),
-        (3.0 * lo.a * x + 2.0 * lo.b) * x + lo.c,
-    ) / p.v0
-    dp = {
-        2: lo.mu2 * kt * h * (zs + 1.0),
-        3: lo.mu2 * kt * h * zw,
-        4: lo.mu2 * kt * h * s,
-        5: lo.mu2 * kt * h * w,
-        6: lo.mu2 * kt * x_bridges * dh_dv + dppass,
-    }
-    p_lv = lo.mu2 * kt * h * x_bridges + coupling.passive_pressure(v, p.v0, lo)
-    p_at = circulation.atrial_pressure(p_at_state, circ)
-    open_mv, open_ao = p_at - p_lv > 0.0, p_lv - p_c > 0.0
+    dta_dy, dta_dlam = cell.active_tension_partials(y_cell, lam, p.cell)
+    dp_dv = lo.mu2 * dta_dlam * dlam_dv + coupling.passive_pressure_slope(v, p.v0, lo)
+    dp_lv = [_mul(lo.mu2, d) for d in dta_dy] + [dp_dv, 0.0, 0.0]
+    p_lv = coupling.lv_pressure(cell.active_tension(y_cell, lam, p.cell), v, p.v0, lo)
+    mitral, aortic = circulation.valves_open(p_lv, p_c, p_at_state, circ)
     if lookahead is not None:
-        dp_lv = sum(dpj * lookahead[j] for j, dpj in dp.items())
-        dp_at = closed * lookahead[IDX_PAT]
-        open_mv |= (p_at + dp_at) - (p_lv + dp_lv) > 0.0
-        open_ao |= (p_lv + dp_lv) - (p_c + lookahead[IDX_PC]) > 0.0
-    g_mv = jnp.where(open_mv, 1.0 / circ.Rmv, 0.0)
-    g_ao = jnp.where(open_ao, 1.0 / (circ.R1 + circ.R2), 0.0)
-    # circulation rows: dV, dP_c, dP_at
-    row_v = [0.0] * N_STATES
-    row_pc = [0.0] * N_STATES
-    row_pat = [0.0] * N_STATES
-    for j, dpj in dp.items():
-        row_v[j] = -(g_mv + g_ao) * dpj
-        row_pc[j] = g_ao * dpj / circ.C
-        row_pat[j] = closed * g_mv * dpj / circ.Cat
-    row_v[IDX_PC] = g_ao
-    row_v[IDX_PAT] = closed * g_mv
-    row_pc[IDX_PC] = -(g_ao + 1.0 / circ.R3) / circ.C
-    row_pc[IDX_PAT] = closed / (circ.R3 * circ.C)
-    row_pat[IDX_PC] = closed / (circ.R3 * circ.Cat)
-    row_pat[IDX_PAT] = -closed * (closed / circ.R3 + g_mv) / circ.Cat
-    # distortion rows: dζ = a_eff μ1/V0 dV − c ζ
-    row_zs = [k.a_eff * m1 * e for e in row_v]
-    row_zw = [k.a_eff * m1 * e for e in row_v]
-    row_zs[4] = row_zs[4] - k.cs
-    row_zw[5] = row_zw[5] - k.cw
-    # cell rows
-    ca50 = cell.ca50(lam, cp)
-    ratio_n = (ca / ca50) ** cp.nTRPN
-    row_c = [0.0] * N_STATES
-    row_c[0] = -cp.kTRPN * (ratio_n + 1.0)
-    row_c[IDX_V] = cp.kTRPN * (1.0 - c) * ratio_n * (-cp.nTRPN / ca50) * jnp.where(below_cap, cp.beta1, 0.0) * m1
-    half = 0.5 * cp.nA
-    c_pos = jnp.maximum(c, 1e-12)
-    c_pow = jnp.exp(half * jnp.log(c_pos))
-    inv_pow = 1.0 / c_pow
-    capped = inv_pow >= 100.0
-    unblock = k.kb * jnp.minimum(inv_pow, 100.0)
-    u = 1.0 - b - s - w
-    row_b = [0.0] * N_STATES
-    row_b[0] = jnp.where(c > 1e-12, jnp.where(capped, 0.0, -half * k.kb * inv_pow / c_pos * u) - half * cp.ku * c_pow / c_pos * b, 0.0)
-    row_b[1] = -unblock - cp.ku * c_pow
-    row_b[2] = -unblock
-    row_b[3] = -unblock
-    gamma_wu = cp.gamma_w * jnp.abs(zw)
-    row_w = [0.0] * N_STATES
-    row_w[1] = -k.kuw
-    row_w[2] = -k.kuw
-    row_w[3] = -k.kuw - (k.kwu + k.kws + gamma_wu)
-    row_w[5] = -cp.gamma_w * jnp.sign(zw) * w
-    gamma_su = cp.gamma_s * jnp.where(zs > 0.0, zs, jnp.where(zs < -1.0, -zs - 1.0, 0.0))
-    row_s = [0.0] * N_STATES
-    row_s[2] = -(k.ksu + gamma_su)
-    row_s[3] = k.kws
-    row_s[4] = -cp.gamma_s * jnp.where(zs > 0.0, 1.0, jnp.where(zs < -1.0, -1.0, 0.0)) * s
-    return [row_c, row_b, row_s, row_w, row_zs, row_zw, row_v, row_pc, row_pat]
+        ahead = sum(d * lookahead[j] for j, d in enumerate(dp_lv) if not is_zero(d))
+        mitral_ahead, aortic_ahead = circulation.valves_open(p_lv + ahead, p_c + lookahead[IDX_PC], p_at_state + lookahead[IDX_PAT], circ)
+        mitral, aortic = mitral | mitral_ahead, aortic | aortic_ahead
+    rows_circ = []
+    for d_lv, d_pc, d_pat in circulation.jacobian(mitral, aortic, circ):
+        row = [_mul(d_lv, d) for d in dp_lv]
+        row[IDX_PC], row[IDX_PAT] = d_pc, d_pat
+        rows_circ.append(row)
+    j_cell, d_lam, d_lam_rate = cell.jacobian(y_cell, ca, lam, p.cell, k)
+    rows_cell = []
+    for i in range(cell.N_STATES):
+        row = j_cell[i] + [0.0] * (N_STATES - cell.N_STATES)
+        row[IDX_V] = _add(row[IDX_V], _mul(d_lam[i], dlam_dv))
+        if not is_zero(d_lam_rate[i]):  # dλ/dt = μ1/V0 dV/dt
+            gain = d_lam_rate[i] * dlam_dv
+            row = [_add(r, _mul(gain, e)) for r, e in zip(row, rows_circ[0])]
+        rows_cell.append(row)
+    return rows_cell + rows_circ

@@ -16,12 +16,14 @@ import jax
 import numpy as np
 
 from lvenv.geometry import Geometry, GeometryError, cavity_volume
+from lvenv.validation import InputError, real_array
 
-__all__ = ["LOParams", "CellParams", "Circulation", "Heart", "validate", "stack", "ranges", "field_names"]
+__all__ = ["LOParams", "CellParams", "Circulation", "Heart", "validate", "stack", "as_batch", "ranges", "field_names", "locate"]
 
 
-def _param(default: float, lo: float, hi: float, units: str, doc: str) -> Any:
-    return dataclasses.field(default=default, metadata={"range": (lo, hi), "units": units, "doc": doc})
+def _param(default: float, lo: float, hi: float, units: str, doc: str, values: tuple[float, ...] | None = None) -> Any:
+    """A parameter field: default, allowed range [lo, hi], units, doc and, for a switch, its ``values``."""
+    return dataclasses.field(default=default, metadata={"range": (lo, hi), "units": units, "doc": doc, "values": values})
 
 
 def _pytree(cls):
@@ -32,7 +34,8 @@ def _pytree(cls):
 
 @_pytree
 class LOParams:
-    """The eight trained LO parameters (DESIGN §1, table; defaults: N geometry)."""
+    """The trained LO parameters (DESIGN §1, table; defaults: N geometry), plus the activation
+    delay of DESIGN §3 (ours, :func:`lvenv.coupling.calcium`; 0 in the paper's Table 3)."""
 
     mu1: float = _param(0.191, 1e-3, 1.0, "1", "stretch map: λ = μ1 (V/V0 − 1) + 1")
     mu2: float = _param(0.183, 1e-3, 2.0, "1", "pressure map: P = μ2 Ta + Ppass")
@@ -42,6 +45,7 @@ class LOParams:
     a: float = _param(1.70, 0.0, 50.0, "kPa", "Ppass cubic coefficient")
     b: float = _param(-1.41, -50.0, 50.0, "kPa", "Ppass quadratic coefficient")
     c: float = _param(1.64, 1e-3, 50.0, "kPa", "Ppass linear coefficient")
+    delay: float = _param(0.0, 0.0, 0.3, "s", "activation delay: the LO cell's Ca transient starts this long after the beat's onset (ours; 0 in the paper)")
 
 
 @_pytree
@@ -96,7 +100,7 @@ class Circulation:
     Cat: float = _param(2.0, 0.1, 1000.0, "ml/kPa", "atrial compliance (closed loop)")
     Pc0: float = _param(10.0, 0.0, 40.0, "kPa", "initial Windkessel capacitor pressure")
     HR: float = _param(60.0, 20.0, 240.0, "1/min", "heart rate")
-    closed_loop: float = _param(1.0, 0.0, 1.0, "1", "0: open loop (constant Pat, venous side at 0 kPa); 1: closed loop")
+    closed_loop: float = _param(1.0, 0.0, 1.0, "1", "0: open loop (constant Pat, venous side at 0 kPa); 1: closed loop", values=(0.0, 1.0))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,16 +123,17 @@ class Heart:
         ``cell`` and ``circulation`` replace the whole part.
         """
         top = {k: changes.pop(k) for k in ("geometry", "lo", "cell", "circulation") if k in changes}
+        if unknown := sorted(k for k in changes if k not in _LOCATION):
+            raise TypeError(f"unknown Heart parameter(s): {unknown}; known: {field_names()}")
         heart = dataclasses.replace(self, **top)
-        parts = {}
-        for part in ("lo", "cell", "circulation"):
-            obj = getattr(heart, part)
-            mine = {k: changes.pop(k) for k in list(changes) if k in {f.name for f in dataclasses.fields(obj)}}
-            if mine:
-                parts[part] = dataclasses.replace(obj, **mine)
-        if changes:
-            raise TypeError(f"unknown Heart parameter(s): {sorted(changes)}; known: {field_names()}")
-        return dataclasses.replace(heart, **parts)
+        parts: dict[str, dict[str, Any]] = {}
+        for name, value in changes.items():
+            parts.setdefault(locate(name), {})[name] = value
+        return dataclasses.replace(heart, **{part: dataclasses.replace(getattr(heart, part), **mine) for part, mine in parts.items()})
+
+    def get(self, name: str) -> Any:
+        """The value of the LO, cell or circulation parameter ``name`` (scalar or per member)."""
+        return getattr(getattr(self, locate(name)), name)
 
 
 def _flatten_geometry(g: Geometry):
@@ -146,6 +151,14 @@ jax.tree_util.register_pytree_node(Geometry, _flatten_geometry, _unflatten_geome
 jax.tree_util.register_dataclass(Heart, data_fields=["geometry", "lo", "cell", "circulation"], meta_fields=[])
 
 _PARTS = (("lo", LOParams), ("cell", CellParams), ("circulation", Circulation))
+_LOCATION = {f.name: part for part, cls in _PARTS for f in dataclasses.fields(cls)}
+
+
+def locate(name: str) -> str:
+    """The part of :class:`Heart` (``"lo"``, ``"cell"`` or ``"circulation"``) holding parameter ``name``."""
+    if name not in _LOCATION:
+        raise TypeError(f"unknown Heart parameter {name!r}; known: {field_names()}")
+    return _LOCATION[name]
 
 
 def field_names() -> list[str]:
@@ -163,13 +176,6 @@ def ranges() -> dict[str, tuple[float, float, str, str]]:
     return out
 
 
-def _iter_fields(heart: Heart) -> Iterator[tuple[str, str, np.ndarray, tuple[float, float], str]]:
-    for part, cls in _PARTS:
-        obj = getattr(heart, part)
-        for f in dataclasses.fields(cls):
-            yield part, f.name, np.asarray(getattr(obj, f.name), dtype=float), f.metadata["range"], f.metadata["units"]
-
-
 def _member(arr: np.ndarray, where: np.ndarray) -> str:
     if arr.ndim == 0:
         return ""
@@ -182,28 +188,36 @@ def validate(heart: Heart) -> None:
     Works on a single Heart or a stacked batch. Also checks the cross-field conditions
     τ1 < τ2, Cdia < Cmax and that Ppass is monotone for x > 0 (b² < 3ac or b ≥ 0).
     """
-    for part, name, arr, (lo, hi), units in _iter_fields(heart):
-        bad = ~np.isfinite(arr) | (arr < lo) | (arr > hi)
-        if np.any(bad):
-            value = float(arr.ravel()[np.flatnonzero(bad.ravel())[0]])
-            raise ValueError(f"{part}.{name} = {value:g} {units} is outside the allowed range [{lo:g}, {hi:g}]{_member(arr, bad)}")
+    heart = _as_arrays(heart)
+    batch_size(heart)
+    for part, cls in _PARTS:
+        for f in dataclasses.fields(cls):
+            arr, name = getattr(getattr(heart, part), f.name), f.name
+            (lo, hi), units, values = f.metadata["range"], f.metadata["units"], f.metadata["values"]
+            bad = ~np.isfinite(arr) | (arr < lo) | (arr > hi)
+            if np.any(bad):
+                value = float(arr.ravel()[np.flatnonzero(bad.ravel())[0]])
+                raise InputError(f"{part}.{name} = {value:g} {units} is outside the allowed range [{lo:g}, {hi:g}]{_member(arr, bad)}")
+            if values is not None and np.any(bad := ~np.isin(arr, values)):
+                value = float(arr.ravel()[np.flatnonzero(bad.ravel())[0]])
+                raise InputError(f"{part}.{name} = {value:g} must be one of {', '.join(f'{v:g}' for v in values)}{_member(arr, bad)}")
     cell, lo = heart.cell, heart.lo
     tau1, tau2 = np.asarray(cell.tau1, float), np.asarray(cell.tau2, float)
     if np.any(bad := tau1 >= tau2):
-        raise ValueError(f"cell.tau1 = {float(np.ravel(tau1)[np.flatnonzero(bad.ravel())[0]]):g} s must be below cell.tau2 (rise faster than decay){_member(tau1, bad)}")
+        raise InputError(f"cell.tau1 = {float(np.ravel(tau1)[np.flatnonzero(bad.ravel())[0]]):g} s must be below cell.tau2 (rise faster than decay){_member(tau1, bad)}")
     cdia, cmax = np.asarray(cell.Cdia, float), np.asarray(cell.Cmax, float)
     if np.any(bad := cdia >= cmax):
-        raise ValueError(f"cell.Cdia = {float(np.ravel(cdia)[np.flatnonzero(bad.ravel())[0]]):g} µM must be below cell.Cmax{_member(cdia, bad)}")
+        raise InputError(f"cell.Cdia = {float(np.ravel(cdia)[np.flatnonzero(bad.ravel())[0]]):g} µM must be below cell.Cmax{_member(cdia, bad)}")
     a, b, c = (np.asarray(v, float) for v in (lo.a, lo.b, lo.c))
     if np.any(bad := (b < 0) & (b * b >= 3 * a * c)):
-        raise ValueError(f"lo.b = {float(np.ravel(b)[np.flatnonzero(bad.ravel())[0]]):g} kPa makes Ppass non-monotone for V > V0 (need b² < 3ac){_member(b, bad)}")
+        raise InputError(f"lo.b = {float(np.ravel(b)[np.flatnonzero(bad.ravel())[0]]):g} kPa makes Ppass non-monotone for V > V0 (need b² < 3ac){_member(b, bad)}")
     cavity_volumes(heart)
 
 
 def cavity_volumes(heart: Heart) -> np.ndarray:
     """V0 (ml) of each member's geometry; validates every distinct geometry once."""
     g = heart.geometry
-    rows = np.stack(np.broadcast_arrays(*(np.asarray(getattr(g, f.name), float) for f in dataclasses.fields(Geometry))), axis=-1)
+    rows = np.stack(np.broadcast_arrays(*(real_array(f"geometry.{f.name}", getattr(g, f.name)) for f in dataclasses.fields(Geometry))), axis=-1)
     flat = np.ascontiguousarray(rows.reshape(-1, rows.shape[-1]))
     keys = flat.view(np.dtype((np.void, flat.dtype.itemsize * flat.shape[1]))).ravel()
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
@@ -221,18 +235,76 @@ def cavity_volumes(heart: Heart) -> np.ndarray:
 
 def stack(hearts: Sequence[Heart]) -> Heart:
     """Stack a sequence of Hearts into one batched Heart (leaves of shape ``(len(hearts),)``)."""
+    if isinstance(hearts, (str, bytes)) or not isinstance(hearts, Sequence):
+        raise InputError(f"expected a sequence of lvenv.Heart, got {type(hearts).__name__}")
     if len(hearts) == 0:
-        raise ValueError("cannot stack an empty sequence of Hearts")
-    return jax.tree.map(lambda *xs: np.stack([np.asarray(x, dtype=float) for x in xs]), *hearts)
+        raise InputError("cannot stack an empty sequence of Hearts")
+    arrays = []
+    for i, heart in enumerate(hearts):
+        if not isinstance(heart, Heart):
+            raise InputError(f"member {i} is a {type(heart).__name__}, not an lvenv.Heart")
+        try:
+            arrays.append(_as_arrays(heart))
+        except InputError as err:
+            raise InputError(f"{err} (batch member {i})") from None
+        if batch_size(arrays[-1]) is not None:
+            raise InputError(f"member {i} is itself a stacked batch; pass single Hearts")
+    return jax.tree.map(lambda *xs: np.stack(xs), *arrays)
+
+
+def _as_arrays(heart: Heart) -> Heart:
+    """The same Heart with every parameter a float64 array (a list becomes one array, not a
+    subtree); wrong types raise :class:`InputError` naming the field."""
+    if not isinstance(heart, Heart):
+        raise InputError(f"expected an lvenv.Heart, got {type(heart).__name__}")
+    if not isinstance(heart.geometry, Geometry):
+        raise InputError(f"heart.geometry must be an lvenv.Geometry, got {type(heart.geometry).__name__}")
+    parts = {}
+    for part, cls in _PARTS:
+        obj = getattr(heart, part)
+        if not isinstance(obj, cls):
+            raise InputError(f"heart.{part} must be an lvenv.{cls.__name__}, got {type(obj).__name__}")
+        parts[part] = dataclasses.replace(obj, **{f.name: real_array(f"{part}.{f.name}", getattr(obj, f.name)) for f in dataclasses.fields(cls)})
+    g = heart.geometry
+    leaves = [real_array(f"geometry.{f.name}", getattr(g, f.name)) for f in dataclasses.fields(Geometry)]
+    return Heart(geometry=jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(g), leaves), **parts)
+
+
+def as_batch(params: Heart | Sequence[Heart]) -> tuple[Heart, bool]:
+    """Validated batch (every leaf a float array of shape ``(B,)``) and whether ``params`` was one Heart.
+
+    Accepts a single Heart, a sequence of Hearts, or a stacked Heart whose leaves are numbers or
+    arrays of shape ``(B,)`` (numbers are broadcast to every member).
+    """
+    if isinstance(params, Heart):
+        validate(params)
+        heart = _as_arrays(params)
+        size = batch_size(heart)
+        if size is None:
+            return stack([params]), True
+        return jax.tree.map(lambda x: np.broadcast_to(x, (size,)).copy(), heart), False
+    heart = stack(params)
+    validate(heart)
+    return heart, False
+
+
+def _named_leaves(heart: Heart) -> Iterator[tuple[str, Any]]:
+    for f in dataclasses.fields(Geometry):
+        yield f"geometry.{f.name}", getattr(heart.geometry, f.name)
+    for part, cls in _PARTS:
+        for f in dataclasses.fields(cls):
+            yield f"{part}.{f.name}", getattr(getattr(heart, part), f.name)
 
 
 def batch_size(heart: Heart) -> int | None:
     """``None`` for a single Heart, else the common leading dimension of a stacked one."""
-    shapes = {np.shape(x) for x in jax.tree.leaves(heart)}
-    if shapes == {()}:
-        return None
-    dims = {s[0] if s else None for s in shapes}
-    dims.discard(None)
-    if len(dims) != 1 or any(len(s) > 1 for s in shapes):
-        raise ValueError(f"a stacked Heart needs every leaf of shape () or (batch,), got shapes {sorted(shapes)}")
-    return dims.pop()
+    size, first = None, None
+    for name, value in _named_leaves(heart):
+        shape = np.shape(value)
+        if len(shape) > 1 or shape == (0,):
+            raise InputError(f"{name} has shape {shape}; a parameter is a number or, in a batch, one number per member (shape (B,), B ≥ 1)")
+        if shape and size is None:
+            size, first = shape[0], name
+        elif shape and shape[0] != size:
+            raise InputError(f"{name} has {shape[0]} members but {first} has {size}: every batched parameter needs one value per member")
+    return size

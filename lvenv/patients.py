@@ -19,59 +19,90 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import pathlib
+from collections.abc import Mapping
 from typing import Any
 
 from lvenv import presets
+from lvenv.circulation import beat_period
 from lvenv.geometry import Geometry
+from lvenv.metrics import METRICS, OBS_NAMES
 from lvenv.params import CellParams, Circulation, Heart, LOParams, validate
 from lvenv.units import mmhg_to_kpa
+from lvenv.validation import InputError, real
 
 __all__ = ["OBS_NAMES", "Patient", "builtin", "BUILTIN", "resolve"]
 
-#: Observation vector of the environment (internal units: 1, s, ml, kPa).
-OBS_NAMES = ("EF", "IVCT", "ET", "IVRT", "filling_time", "EDV", "ESV", "P_ao_sys", "P_ao_dia", "P_ao_pulse", "P_ao_mean")
+_PHASES = ("IVCT", "ET", "IVRT", "filling_time")
 
 
 @dataclasses.dataclass(frozen=True)
 class Patient:
     """A patient: the heart to identify around, target observations and their weights.
 
-    ``targets`` and ``weights`` are keyed by :data:`OBS_NAMES` (internal units). A target
-    without a weight gets weight 1.
+    ``targets`` and ``weights`` are keyed by :data:`~lvenv.metrics.OBS_NAMES` (internal units).
+    A target without a weight gets weight 1. Checked at construction (``ValueError`` naming the
+    field, value and what is allowed):
+
+    * every target lies in its metric's range (:attr:`lvenv.metrics.Metric.target`; e.g. EF in
+      (0, 1], volumes, durations and pressures positive);
+    * targets agree with each other where they must: ESV < EDV, P_ao_dia < P_ao_mean < P_ao_sys
+      (of those given), P_ao_pulse < P_ao_sys, and the given phase durations fit into one beat
+      at the heart's rate;
+    * weights are finite and ≥ 0, and at least one target has a positive weight.
     """
 
     name: str
     heart: Heart
-    targets: dict[str, float]
-    weights: dict[str, float] = dataclasses.field(default_factory=dict)
+    targets: Mapping[str, float]
+    weights: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
-            raise ValueError(f"patient.name must be a non-empty string, got {self.name!r}")
+            raise InputError(f"patient.name must be a non-empty string, got {self.name!r}")
         if not isinstance(self.heart, Heart):
-            raise ValueError(f"patient.heart must be an lvenv.Heart, got {type(self.heart).__name__}")
+            raise InputError(f"patient.heart must be an lvenv.Heart, got {type(self.heart).__name__}")
         try:
             validate(self.heart)
         except ValueError as err:
-            raise ValueError(f"patient.heart: {err}") from None
-        if not self.targets:
-            raise ValueError("patient.targets must name at least one observation")
+            raise InputError(f"patient.heart: {err}") from None
         for group in ("targets", "weights"):
-            for key, value in getattr(self, group).items():
+            value = getattr(self, group)
+            if not isinstance(value, Mapping):
+                raise InputError(f"patient.{group} must map observation names to numbers, got {type(value).__name__}")
+            for key in value:
                 if key not in OBS_NAMES:
-                    raise ValueError(f"patient.{group}[{key!r}] is not an observation; choose from {OBS_NAMES}")
-                if not isinstance(value, (int, float)) or not math.isfinite(value):
-                    raise ValueError(f"patient.{group}[{key!r}] = {value!r} must be a finite number")
+                    raise InputError(f"patient.{group}[{key!r}] is not an observation; choose from {OBS_NAMES}")
+        if not self.targets:
+            raise InputError("patient.targets must name at least one observation")
+        targets = {}
         for key, value in self.targets.items():
-            if value == 0.0:
-                raise ValueError(f"patient.targets[{key!r}] = 0: targets enter as relative errors and must be non-zero")
+            lo, hi = METRICS[key].target
+            targets[key] = real(f"patient.targets[{key!r}]", value, lo, hi, lo_open=True)
+        weights = {}
         for key, value in self.weights.items():
-            if value < 0.0:
-                raise ValueError(f"patient.weights[{key!r}] = {value} must be ≥ 0")
-            if key not in self.targets:
-                raise ValueError(f"patient.weights[{key!r}] has no matching target")
+            if key not in targets:
+                raise InputError(f"patient.weights[{key!r}] has no matching target")
+            weights[key] = real(f"patient.weights[{key!r}]", value, 0.0)
+        if not any(weights.get(k, 1.0) > 0.0 for k in targets):
+            raise InputError(f"patient.weights = {weights} are all zero: at least one target needs a positive weight")
+        object.__setattr__(self, "targets", targets)
+        object.__setattr__(self, "weights", weights)
+        self._check_consistency()
+
+    def _check_consistency(self) -> None:
+        t = self.targets
+
+        def below(small: str, large: str) -> None:
+            if small in t and large in t and not t[small] < t[large]:
+                raise InputError(f"patient.targets[{small!r}] = {t[small]:g} must be below patient.targets[{large!r}] = {t[large]:g}")
+
+        for small, large in (("ESV", "EDV"), ("P_ao_dia", "P_ao_sys"), ("P_ao_dia", "P_ao_mean"), ("P_ao_mean", "P_ao_sys"), ("P_ao_pulse", "P_ao_sys")):
+            below(small, large)
+        period = float(beat_period(self.heart.circulation))
+        phases = {k: t[k] for k in _PHASES if k in t}
+        if sum(phases.values()) > period:
+            raise InputError(f"patient.targets {phases} (s) add up to more than one beat, {period:g} s at {float(self.heart.circulation.HR):g} bpm")
 
     def weight(self, key: str) -> float:
         return float(self.weights.get(key, 1.0)) if key in self.targets else 0.0
@@ -96,49 +127,65 @@ class Patient:
 
     @classmethod
     def from_dict(cls, record: dict[str, Any]) -> "Patient":
+        """A patient from a record: ``name``, ``geometry`` and ``targets`` required; ``lo``,
+        ``cell``, ``circulation`` and ``weights`` optional (``null`` means the default)."""
         if not isinstance(record, dict):
-            raise ValueError(f"a patient record must be a JSON object, got {type(record).__name__}")
+            raise InputError(f"a patient record must be a JSON object, got {type(record).__name__}")
         for key in ("name", "geometry", "targets"):
             if key not in record:
-                raise ValueError(f"patient record is missing the field {key!r}")
+                raise InputError(f"patient record is missing the field {key!r}")
         known = {"name", "geometry", "lo", "cell", "circulation", "targets", "weights"}
         if extra := set(record) - known:
-            raise ValueError(f"patient record has unknown field(s) {sorted(extra)}; known: {sorted(known)}")
+            raise InputError(f"patient record has unknown field(s) {sorted(extra)}; known: {sorted(known)}")
         parts = {}
         for key, part_cls in (("geometry", Geometry), ("lo", LOParams), ("cell", CellParams), ("circulation", Circulation)):
-            if key not in record:
+            value = record.get(key)
+            if value is None:
+                if key == "geometry":
+                    raise InputError("patient.geometry must be an object of named numbers, got null")
                 continue
-            value = record[key]
             if not isinstance(value, dict):
-                raise ValueError(f"patient.{key} must be an object of named numbers")
+                raise InputError(f"patient.{key} must be an object of named numbers, got {type(value).__name__}")
             names = {f.name for f in dataclasses.fields(part_cls)}
             if extra := set(value) - names:
-                raise ValueError(f"patient.{key} has unknown field(s) {sorted(extra)}; known: {sorted(names)}")
-            try:
-                parts[key] = part_cls(**{k: float(v) for k, v in value.items()})
-            except (TypeError, ValueError) as err:
-                raise ValueError(f"patient.{key}: {err}") from None
+                raise InputError(f"patient.{key} has unknown field(s) {sorted(extra)}; known: {sorted(names)}")
+            if key == "geometry" and (missing := names - set(value)):
+                raise InputError(f"patient.geometry is missing the field(s) {sorted(missing)}")
+            parts[key] = part_cls(**{k: _number(v, f"{key}.{k}") for k, v in value.items()})
+        for key in ("targets", "weights"):
+            if record.get(key) is not None and not isinstance(record[key], dict):
+                raise InputError(f"patient.{key} must be an object mapping observation names to numbers, got {type(record[key]).__name__}")
         return cls(
             name=record["name"],
             heart=Heart(**parts),
-            targets={k: _number(v, f"targets[{k!r}]") for k, v in dict(record["targets"]).items()},
-            weights={k: _number(v, f"weights[{k!r}]") for k, v in dict(record.get("weights", {})).items()},
+            targets={k: _number(v, f"targets[{k!r}]") for k, v in (record["targets"] or {}).items()},
+            weights={k: _number(v, f"weights[{k!r}]") for k, v in (record.get("weights") or {}).items()},
         )
 
     @classmethod
     def from_json(cls, text_or_path: str | pathlib.Path) -> "Patient":
-        path = pathlib.Path(text_or_path) if not str(text_or_path).lstrip().startswith("{") else None
-        text = path.read_text() if path is not None else str(text_or_path)
+        """A patient from JSON text (starting with ``{``) or from the path of a JSON file."""
+        if isinstance(text_or_path, str) and text_or_path.lstrip().startswith(("{", "[")):
+            text, source = text_or_path, "patient JSON text"
+        elif isinstance(text_or_path, (str, pathlib.Path)):
+            path = pathlib.Path(text_or_path)
+            try:
+                text = path.read_text()
+            except OSError as err:
+                raise InputError(f"cannot read the patient record {str(path)!r}: {err.strerror or err}") from None
+            source = f"patient record {str(path)!r}"
+        else:
+            raise InputError(f"expected JSON text or a path to a JSON file, got {type(text_or_path).__name__}")
         try:
             record = json.loads(text)
         except json.JSONDecodeError as err:
-            raise ValueError(f"patient record is not valid JSON: {err}") from None
+            raise InputError(f"{source} is not valid JSON: {err}") from None
         return cls.from_dict(record)
 
 
 def _number(value: Any, where: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"patient.{where} = {value!r} must be a number")
+        raise InputError(f"patient.{where} = {value!r} must be a number")
     return float(value)
 
 
@@ -148,24 +195,29 @@ def builtin(name: str) -> Patient:
         return Patient("normal", presets.normal(), {"EF": 0.60, "ET": 0.300, "IVRT": 0.080, "P_ao_pulse": mmhg_to_kpa(45.0)})
     if name == "heart_failure":
         return Patient("heart_failure", presets.heart_failure(), {"EF": 0.486, "ET": 0.363, "IVRT": 0.100, "P_ao_pulse": mmhg_to_kpa(45.0)})
-    raise ValueError(f"unknown built-in patient {name!r}; choose from {BUILTIN}")
+    raise InputError(f"unknown built-in patient {name!r}; choose from {BUILTIN}")
 
 
 BUILTIN = ("normal", "heart_failure")
 
 
-def resolve(patient: str | Patient | dict | list, num_envs: int) -> list[Patient]:
-    """One Patient per member from a name, a record, a dict, or a list with one entry per member."""
+def resolve(patient: str | pathlib.Path | Patient | dict | list, num_envs: int) -> list[Patient]:
+    """One Patient per member from a built-in name, a JSON file path or text, a Patient, a record
+    dict, or a list with one of those per member."""
     if isinstance(patient, (list, tuple)):
         if len(patient) != num_envs:
-            raise ValueError(f"patient list has {len(patient)} records for num_envs = {num_envs}")
+            raise InputError(f"patient list has {len(patient)} records for num_envs = {num_envs}")
         return [resolve(p, 1)[0] for p in patient]
-    if isinstance(patient, str):
+    if isinstance(patient, str) and patient in BUILTIN:
         record = builtin(patient)
+    elif isinstance(patient, pathlib.Path) or (isinstance(patient, str) and (patient.lstrip().startswith("{") or patient.endswith(".json") or pathlib.Path(patient).is_file())):
+        record = Patient.from_json(patient)
+    elif isinstance(patient, str):
+        raise InputError(f"patient = {patient!r} is neither a built-in patient {BUILTIN} nor a JSON record file")
     elif isinstance(patient, dict):
         record = Patient.from_dict(patient)
     elif isinstance(patient, Patient):
         record = patient
     else:
-        raise ValueError(f"patient must be a built-in name, a Patient, a dict or a list of them, got {type(patient).__name__}")
+        raise InputError(f"patient must be a built-in name, a JSON path, a Patient, a dict or a list of them, got {type(patient).__name__}")
     return [record] * num_envs

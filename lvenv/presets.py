@@ -1,16 +1,27 @@
 """Named parameter sets: the paper's N and HF hearts and the Table 2 training conditions.
 
-Geometry: Table 1 unloaded configurations. LO parameters: the paper's trained values (DESIGN §1
-table, "Table 3"). Cell defaults: :class:`lvenv.params.CellParams` (README, "Cell defaults").
-Circulation defaults (closed loop, 60 bpm): README, "Circulation defaults".
+Geometry: Table 1 unloaded configurations. LO parameters, by name (``lo=``):
+
+* ``"trained"`` (default): congruency-trained against our own 3-D FE oracle at its default mesh
+  (:mod:`optim.congruency`; records ``lvenv/data/trained_normal.json`` and
+  ``trained_heart_failure.json`` with their congruency and provenance, :mod:`lvenv.trained`);
+* ``"table3"``: the paper's values, trained against *their* FE model (DESIGN §1 table, "Table 3").
+
+Cell defaults: :class:`lvenv.params.CellParams` (README, "Cell defaults"). Circulation defaults
+(closed loop, 60 bpm): README, "Circulation defaults".
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
+from lvenv import trained
 from lvenv.geometry import Geometry
 from lvenv.params import Circulation, Heart, LOParams
+from lvenv.validation import choice
 
-__all__ = ["normal", "heart_failure", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
+__all__ = ["normal", "heart_failure", "LO_SETS", "lo_params", "training_circulation", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
 
 N_UNLOADED = Geometry(Rb=35.0, L=9.6, Z=54.0, H=12.0, e=0.70, C0=-53.0)
 HF_UNLOADED = Geometry(Rb=38.0, L=10.0, Z=49.0, H=7.7, e=0.66, C0=-64.0)
@@ -26,25 +37,49 @@ TRAINING_R1 = 0.0015
 TRAINING_PC0 = 10.0
 
 
-def normal() -> Heart:
-    """Healthy heart N (F 77): unloaded geometry, trained LO maps, default cell and circulation."""
-    return Heart(geometry=N_UNLOADED, lo=N_LO, circulation=Circulation())
+#: Names of the LO parameter sets.
+LO_SETS = ("trained", "table3")
 
 
-def heart_failure() -> Heart:
-    """Heart-failure heart HF (M 77, no infarct): unloaded geometry and trained LO maps."""
-    return Heart(geometry=HF_UNLOADED, lo=HF_LO, circulation=Circulation())
+@functools.cache
+def _trained(name: str) -> LOParams:
+    return trained.builtin(name).lo
+
+
+def lo_params(heart: str, lo: str = "trained") -> LOParams:
+    """The LO parameters of preset ``heart`` ("normal" or "heart_failure") by set name (module docstring)."""
+    choice("heart", heart, ("normal", "heart_failure"))
+    choice("lo", lo, LO_SETS)
+    if lo == "table3":
+        return N_LO if heart == "normal" else HF_LO
+    return _trained(heart)
+
+
+def normal(lo: str = "trained") -> Heart:
+    """Healthy heart N (F 77): unloaded geometry, LO maps ``lo`` (module docstring), default cell and circulation."""
+    return Heart(geometry=N_UNLOADED, lo=lo_params("normal", lo), circulation=Circulation())
+
+
+def heart_failure(lo: str = "trained") -> Heart:
+    """Heart-failure heart HF (M 77, no infarct): unloaded geometry, LO maps ``lo``, default cell and circulation."""
+    return Heart(geometry=HF_UNLOADED, lo=lo_params("heart_failure", lo), circulation=Circulation())
+
+
+def training_circulation(k: int, base: Circulation | None = None) -> Circulation:
+    """The circulation ``base`` (default :class:`~lvenv.params.Circulation`) under Table 2 condition ``k`` ∈ {1, 2, 3}.
+
+    Open loop: constant atrial pressure Pat, venous side at 0 kPa, R1 = 0.0015, R2 = 0, and the
+    training protocol's initial capacitor pressure P_c(0) = 10 kPa; heart rate and Rmv stay
+    ``base``'s. The FE oracle and the LO heart are trained under exactly these circulations.
+    """
+    choice("training condition k", k, tuple(TRAINING_CONDITIONS))
+    pat, r3, c = TRAINING_CONDITIONS[k]
+    base = Circulation() if base is None else base
+    return dataclasses.replace(base, Pat=pat, R3=r3, C=c, R1=TRAINING_R1, R2=0.0, Pc0=TRAINING_PC0, closed_loop=0.0)
 
 
 def training_condition(k: int, base: Heart | None = None) -> Heart:
-    """``base`` (default :func:`normal`) under Table 2 condition ``k`` ∈ {1, 2, 3}.
-
-    Open loop: constant atrial pressure Pat, venous side at 0 kPa, R1 = 0.0015, R2 = 0, and the
-    training protocol's initial capacitor pressure P_c(0) = 10 kPa. Simulate one beat from the
-    default initial state (``lvenv.simulate(heart, beats=1)``).
-    """
-    if k not in TRAINING_CONDITIONS:
-        raise ValueError(f"training condition k = {k!r} is not one of {sorted(TRAINING_CONDITIONS)}")
-    pat, r3, c = TRAINING_CONDITIONS[k]
+    """``base`` (default :func:`normal`) under Table 2 condition ``k`` (:func:`training_circulation`).
+    Simulate one beat from the default initial state (``lvenv.simulate(heart, beats=1)``)."""
     base = normal() if base is None else base
-    return base.replace(Pat=pat, R3=r3, C=c, R1=TRAINING_R1, R2=0.0, Pc0=TRAINING_PC0, closed_loop=0.0)
+    return dataclasses.replace(base, circulation=training_circulation(k, base.circulation))

@@ -10,6 +10,11 @@ code, never raised inside jitted code, and never leaks into other members.
 
 Steady state: the relative beat-to-beat change of EDV, ESV (both relative to EDV) and peak
 P_lv falls below ``rtol``.
+
+Status (:mod:`lvenv.status`): a member whose state turns non-finite or leaves its physical range
+is ``nonfinite`` / ``diverged``; a last beat without the full valve cycle is ``no_valve_cycle``;
+one with a full cycle but ESV ≤ 0, EF > 1 or EF < :data:`lvenv.status.EF_MIN` is
+``non_physical``. Only ``ok`` and ``not_converged`` members report metrics; the others' are NaN.
 """
 
 from __future__ import annotations
@@ -22,19 +27,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lvenv import cell, events, model
+from lvenv import cell, coupling, events, model
 from lvenv.circulation import beat_period
 from lvenv.devices import shard_members
 from lvenv.integrator import ros2_step
+from lvenv.metrics import METRIC_NAMES
 from lvenv.model import IDX_PC, IDX_V, ModelParams
-from lvenv.params import Heart, batch_size, stack, validate
+from lvenv.params import Heart, as_batch
+from lvenv.status import DIVERGED, EF_MIN, NO_VALVE_CYCLE, NON_PHYSICAL, NONFINITE, NOT_CONVERGED, OK, STATUS, is_usable, names
+from lvenv.validation import InputError, choice, integer, real, real_array
 
-__all__ = ["STATUS", "SimulationResult", "Traces", "simulate", "run_beats", "run_beats_jit"]
+__all__ = ["STATUS", "SimulationResult", "Traces", "simulate", "run_beats", "run_beats_jit", "check_settings", "MIN_STEPS_PER_BEAT"]
 
-STATUS = ("ok", "not_converged", "nonfinite", "diverged", "no_valve_cycle")
-OK, NOT_CONVERGED, NONFINITE, DIVERGED, NO_VALVE_CYCLE = range(len(STATUS))
 _MAX_VOLUME_FACTOR = 20.0  # V > 20 V0 is treated as divergence
 _MAX_PRESSURE = 200.0  # kPa; |P| beyond this is treated as divergence
+#: Fewest ROS2 steps per beat: below this the valve events cannot be resolved.
+MIN_STEPS_PER_BEAT = 10
 
 
 def _scan_unroll() -> int:
@@ -55,7 +63,7 @@ def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool):
     f = lambda ca, y: model.rhs_at_calcium(ca, y, p, k)
     jac = lambda ca, y, lookahead: model.jacobian(ca, y, p, k, lookahead)
     t = jnp.arange(steps + 1, dtype=y0.dtype)[:, None] * h
-    ca, ca_rate = cell.calcium(t, p.cell), cell.calcium_rate(t, p.cell)
+    ca, ca_rate = coupling.calcium(t, p.lo, p.cell), coupling.calcium_rate(t, p.lo, p.cell)
 
     def sample(y):
         obs = model.observe(y, p)
@@ -105,7 +113,7 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
     carry0 = {
         "n": jnp.asarray(0),
         "y": y0,
-        "metrics": {k: zeros for k in events.METRIC_NAMES},
+        "metrics": {k: zeros for k in METRIC_NAMES},
         "valid": jnp.zeros((n_members,), bool),
         "converged": jnp.zeros((n_members,), bool),
         "active": jnp.ones((n_members,), bool),
@@ -144,10 +152,11 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
         return new
 
     out = jax.lax.while_loop(cond, body, carry0)
-    failed = out["status"] != OK
-    status = jnp.where(failed, out["status"], jnp.where(~out["valid"], NO_VALVE_CYCLE, jnp.where(steady & ~out["converged"], NOT_CONVERGED, OK)))
-    usable = (status == OK) | (status == NOT_CONVERGED)
-    out["metrics"] = {k: jnp.where(usable, v, 0.0) for k, v in out["metrics"].items()}
+    m = out["metrics"]
+    physical = (m["ESV"] > 0.0) & (m["EF"] <= 1.0) & (m["EF"] >= EF_MIN)
+    status = jnp.where(out["status"] != OK, out["status"], jnp.where(
+        ~out["valid"], NO_VALVE_CYCLE, jnp.where(~physical, NON_PHYSICAL, jnp.where(steady & ~out["converged"], NOT_CONVERGED, OK))))
+    out["metrics"] = {k: jnp.where(is_usable(status), v, jnp.nan) for k, v in m.items()}
     out["status"] = status
     del out["n"], out["active"], out["valid"]
     return out
@@ -172,7 +181,8 @@ class SimulationResult:
 
     ``metrics`` uses internal units (ml, s, kPa, ml/s); ``status`` holds one of :data:`STATUS`
     per member (``"ok"``, ``"not_converged"``, ``"nonfinite"``, ``"diverged"``,
-    ``"no_valve_cycle"``); metrics of failed members are masked to 0.
+    ``"no_valve_cycle"``, ``"non_physical"``; :mod:`lvenv.status`); metrics of failed members
+    are NaN.
     """
 
     metrics: dict[str, np.ndarray | float]
@@ -200,14 +210,18 @@ class SimulationResult:
         )
 
 
-def _as_batch(params: Heart | Sequence[Heart]) -> tuple[Heart, bool]:
-    """Validated, stacked batch and whether the input was a single Heart."""
-    if isinstance(params, Heart) and batch_size(params) is None:
-        validate(params)
-        return stack([params]), True
-    heart = params if isinstance(params, Heart) else stack(list(params))
-    validate(heart)
-    return heart, False
+def check_settings(*, steps_per_beat, max_beats, rtol, beats=None) -> dict:
+    """Validated integration settings (shared by :func:`simulate` and the environment).
+
+    ``steps_per_beat`` an integer ≥ :data:`MIN_STEPS_PER_BEAT`; ``max_beats`` and ``beats``
+    (``None`` allowed) integers ≥ 1; ``rtol`` a finite real number in (0, 1).
+    """
+    return {
+        "steps_per_beat": integer("steps_per_beat", steps_per_beat, MIN_STEPS_PER_BEAT),
+        "max_beats": integer("max_beats", max_beats, 1),
+        "rtol": real("rtol", rtol, 0.0, 1.0, lo_open=True, hi_open=True),
+        "beats": None if beats is None else integer("beats", beats, 1),
+    }
 
 
 def simulate(
@@ -231,20 +245,23 @@ def simulate(
         steps_per_beat: ROS2 steps per cardiac cycle (h = 60 / HR / steps_per_beat s).
         traces: record t, V, P_lv, P_ao of the last beat.
         initial_state: state(s) to start from (shape (9,) or (B, 9)); default: the training
-            protocol's (LV at passive equilibrium with Pat, P_c = Pc0, cell at rest).
+            protocol's (LV at passive equilibrium with Pat, P_c = Pc0, cell at rest). A member
+            whose state is not finite ends with status ``nonfinite``; the others are unaffected.
         dtype: ``jnp.float64`` (default) or ``jnp.float32``.
 
     Raises:
-        ValueError: a parameter outside its documented range (names field, value and range).
+        ValueError: a parameter outside its documented range, a setting of the wrong type or
+            range, or an initial state of the wrong shape (names field, value and what is allowed).
     """
-    if beats is not None and beats < 1:
-        raise ValueError(f"beats = {beats!r} must be a positive integer or None")
-    if max_beats < 1 or steps_per_beat < 10:
-        raise ValueError(f"max_beats = {max_beats} must be ≥ 1 and steps_per_beat = {steps_per_beat} ≥ 10")
-    heart, single = _as_batch(params)
+    settings = check_settings(steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, beats=beats)
+    steps_per_beat, max_beats, rtol, beats = (settings[k] for k in ("steps_per_beat", "max_beats", "rtol", "beats"))
+    if not isinstance(traces, (bool, np.bool_)):
+        raise InputError(f"traces = {traces!r} must be True or False")
+    dtype = choice("dtype", jnp.dtype(dtype) if _is_dtype(dtype) else dtype, (jnp.dtype(jnp.float64), jnp.dtype(jnp.float32)))
+    heart, single = as_batch(params)
     p = model.model_params(heart)
-    y0 = model.initial_state(p).T if initial_state is None else np.broadcast_to(np.asarray(initial_state, float), (len(p.v0), model.N_STATES))
     n_members = len(p.v0)
+    y0 = model.initial_state(p).T if initial_state is None else _initial_state(initial_state, n_members)
     (p_dev, y_dev), _ = shard_members((jax.tree.map(lambda x: np.asarray(x, dtype), p), np.asarray(y0.T, dtype)), n_members)
     out = run_beats_jit(
         p_dev, y_dev, jnp.asarray(rtol, dtype),
@@ -261,9 +278,25 @@ def simulate(
         metrics={k: np.asarray(v) for k, v in out["metrics"].items()},
         traces=trace_obj,
         converged=np.asarray(out["converged"]),
-        status=np.array([STATUS[c] for c in codes]),
+        status=names(codes),
         status_code=codes,
         beats=np.asarray(out["beats"]),
         final_state=np.asarray(out["y"]).T,
     )
     return result[0] if single else result
+
+
+def _is_dtype(value) -> bool:
+    try:
+        jnp.dtype(value)
+    except TypeError:
+        return False
+    return True
+
+
+def _initial_state(value, n_members: int) -> np.ndarray:
+    """User initial state(s) as an ``(n_members, 9)`` float array (one row for all members, or one each)."""
+    y = real_array("initial_state", value)
+    if y.shape not in ((model.N_STATES,), (n_members, model.N_STATES)):
+        raise InputError(f"initial_state has shape {y.shape}; expected ({model.N_STATES},) or ({n_members}, {model.N_STATES}) (one row per member)")
+    return np.broadcast_to(y, (n_members, model.N_STATES))

@@ -20,15 +20,17 @@ from optim.cmaes import CmaEs, CmaOptions
 from optim.kriging import Kriging, KrigingOptions
 from optim.mads import Mads, MadsOptions
 from optim.methods import METHODS, make_optimizer, minimize_batch
-from optim.minimize import EnvHistory, MinimizeResult, SearchSpace, minimize
+from optim.minimize import EnvHistory, MinimizeResult, minimize
 from optim.protocol import (
     BatchEvaluation,
     Bounds,
+    CheckpointError,
     History,
     OptimResult,
     Optimizer,
     load_checkpoint,
     padded,
+    resume,
     run,
     save_checkpoint,
 )
@@ -37,6 +39,7 @@ __all__ = [
     "METHODS",
     "BatchEvaluation",
     "Bounds",
+    "CheckpointError",
     "CmaEs",
     "CmaOptions",
     "EnvHistory",
@@ -49,12 +52,12 @@ __all__ = [
     "OptimResult",
     "Optimizer",
     "ProgressiveBarrier",
-    "SearchSpace",
     "load_checkpoint",
     "make_optimizer",
     "minimize",
     "minimize_batch",
     "padded",
+    "resume",
     "run",
     "save_checkpoint",
 ]

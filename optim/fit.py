@@ -30,9 +30,10 @@ import gymnasium
 import numpy as np
 
 import lvenv
-from lvenv.identification import DEFAULT_ACTION_PARAMS
+from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
+from lvenv.metrics import METRICS
 from lvenv.patients import Patient, builtin
-from optim.minimize import MinimizeResult, SearchSpace, minimize
+from optim.minimize import MinimizeResult, minimize
 
 __all__ = [
     "FitRow", "DEFAULT_OPTIONS", "make_env", "warm_up", "fit_patients", "plot_fits", "null_directions",
@@ -43,7 +44,7 @@ __all__ = [
 DEFAULT_OPTIONS: dict[str, dict[str, Any]] = {
     "mads": {},
     "cma": {},
-    "kriging": {"strategy": "liar", "n_restarts": 0, "n_candidates": 256},
+    "kriging": {"n_restarts": 0, "n_candidates": 1024},  # trust region + Thompson sampling (optim.kriging)
 }
 
 
@@ -117,7 +118,7 @@ def plot_fits(rows: Sequence[FitRow], patients: Mapping[str, Patient], out_dir: 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from lvenv.units import METRIC_DISPLAY, kpa_to_mmhg
+    from lvenv.units import kpa_to_mmhg
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -145,7 +146,7 @@ def plot_fits(rows: Sequence[FitRow], patients: Mapping[str, Patient], out_dir: 
         ax_pv.legend(fontsize=8)
         ax_bar.axhline(1.0, color="k", lw=1)
         ax_bar.set_xticks(np.arange(len(targets)))
-        ax_bar.set_xticklabels([METRIC_DISPLAY.get(t, (t,))[0] for t in targets])
+        ax_bar.set_xticklabels([METRICS[t].label for t in targets])
         ax_bar.set_ylabel("fitted / target")
         ax_bar.set_ylim(0.9, 1.1)
         ax_bar.set_title("observation / target")
@@ -164,7 +165,7 @@ def null_directions(
     """Local identifiability at each truth (rows of `truths`, physical, DEFAULT_ACTION_PARAMS).
 
     J_ij = ∂ ln o_i / ∂ u_j by central differences of ±`step` in the unit-cube coordinates u of
-    `SearchSpace` (log axes where marked), one batched simulation for all truths. The step is
+    `lvenv.identification.ParameterSpace` (log axes where marked), one batched simulation for all truths. The step is
     small because the metrics bend sharply in places (at the N preset, J at step 0.01 has
     σ_max a third of that at 0.002); the steady-state tolerance (1e-4) bounds its noise. With 4 targets
     and 6 parameters J has a null space of dimension ≥ 2: moving along it leaves every target
@@ -172,13 +173,12 @@ def null_directions(
     where r is the numerical rank (σ > 1e-3 σ_max); parameter j is locally identifiable iff row
     j of the null basis is zero.
     """
-    space = SearchSpace.for_names(DEFAULT_ACTION_PARAMS)
-    b = space.bounds
-    k = len(space.names)
-    u0 = (space.to_search(truths) - b.lower) / b.width
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
+    k = space.dimension
+    u0 = space.to_unit(truths)
     offsets = np.vstack([np.zeros(k), step * np.eye(k), -step * np.eye(k)])
     u = np.clip(u0[:, None, :] + offsets[None], 0.0, 1.0)  # (m, 2k + 1, k)
-    x = space.to_physical(b.lower + u.reshape(-1, k) * b.width)
+    x = space.from_unit(u.reshape(-1, k))
     sim = lvenv.simulate([heart.replace(**dict(zip(space.names, map(float, xi)))) for xi in x],
                          steps_per_beat=steps_per_beat, max_beats=60, traces=False)
     obs = np.log(np.stack([np.asarray(sim.metrics[t]) for t in targets], axis=1)).reshape(len(truths), 2 * k + 1, -1)
@@ -226,12 +226,10 @@ def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: 
     [0.3, 0.75] and mean aortic pressure inside the 80–120 mmHg band (so an exact fit exists)."""
     from lvenv.env.core import BAND_KPA
 
-    space = SearchSpace.for_names(DEFAULT_ACTION_PARAMS)
-    b = space.bounds
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     truths, obs = [], []
     while len(truths) < n_sets:
-        s = b.lower + rng.random((64, len(space.names))) * b.width
-        x = space.to_physical(s)
+        x = space.from_unit(rng.random((64, space.dimension)))
         sim = lvenv.simulate([base.heart.replace(**dict(zip(space.names, map(float, xi)))) for xi in x],
                              steps_per_beat=steps_per_beat, max_beats=60, traces=False)
         m = sim.metrics
@@ -265,7 +263,7 @@ def synthetic_recovery(
     base_patient = _patient(base)
     rng = np.random.default_rng(seed)
     truths, obs = _draw_truths(n_sets, rng, base_patient, targets, steps_per_beat)
-    space = SearchSpace.for_names(DEFAULT_ACTION_PARAMS)
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     fits, mismatch, max_error = [], [], []
     opts = {**DEFAULT_OPTIONS.get(method, {}), **options}
     for i in range(n_sets):
@@ -277,7 +275,7 @@ def synthetic_recovery(
         mismatch.append(res.mismatch)
         max_error.append(max(res.mismatch_per_target.values()))
     fits_arr = np.array(fits)
-    err = np.where(space.log, np.abs(np.log(fits_arr / truths)), np.abs(fits_arr - truths) / (space.upper - space.lower))
+    err = np.where(space.log, np.abs(np.log(fits_arr / truths)), np.abs(fits_arr - truths) / (np.array(space.upper) - np.array(space.lower)))
     identifiable = {n: bool(np.median(err[:, j]) < tol_identifiable) for j, n in enumerate(space.names)}
     sigmas, null = null_directions(base_patient.heart, truths, targets, steps_per_beat)
     return RecoveryReport(space.names, tuple(targets), truths, fits_arr, np.array(mismatch), np.array(max_error),

@@ -27,7 +27,7 @@ gives the 2n poll directions D = [H, -H] and poll points x_k + δm_k d, d in D, 
 mesh x_k + δm_k Zⁿ at distance ≈ δp_k. The Halton index is t_k = ℓ_k + p_n when ℓ_k exceeds
 every earlier index, else 1 + max earlier t.
 
-Search step (before each poll): a GP (`optim.kriging`) fitted to the evaluated points nearest the
+Search step (before each poll): a GP (`optim.gp`) fitted to the evaluated points nearest the
 incumbent proposes the minimiser of its mean and expected-improvement points (kriging
 believer); each is rounded onto the mesh, x_k + δm_k · round((y - x_k)/δm_k), inside the box.
 
@@ -52,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 from sklearn.gaussian_process import GaussianProcessRegressor
 
 from optim.barrier import BarrierPoint, ProgressiveBarrier
-from optim.kriging import (
+from optim.gp import (
     fit_gp,
     impute_infeasible,
     latin_hypercube,

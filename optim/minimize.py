@@ -27,101 +27,65 @@ variance on the few bad points (f from ~1 down to 1e-6 over a fit), which made t
 search and EGO far better here. CMA-ES ranks, so it is unaffected; it gets f (pycma's tolfun
 then stays in f units). `MinimizeResult.objective` and the history always hold f itself.
 
-Search space (ours): parameters whose bound is marked `log` in `lvenv.identification.ACTION_BOUNDS`
-(τ2, Sa, R3, C, Cat) are searched in log x, the others (R2) in x, so that a fraction of the
-optimiser's unit cube is a relative change for the parameters spanning decades. Points are
-mapped back to physical units (or to [−1, 1] for an env in `action_mode="normalized"`) before the
-step.
+Search space (ours): the optimisers work in the unit cube of
+`lvenv.identification.ParameterSpace`, in which parameters whose bound is marked `log` (τ2, Sa,
+R3, C, Cat) are log-uniform and the others (R2) uniform, so that a fraction of the cube is a
+relative change for the parameters spanning decades. Points are mapped to physical units (or to
+[−1, 1] for an env in `action_mode="normalized"`) before the step.
 
 Reported mismatch: `result.mismatch` is the env's `info["mismatch"]` at the best point,
 Σ_k w_k |e_k| / Σ_k w_k, and `result.mismatch_per_target[k] = |e_k|`.
 
-Checkpoint / resume: the checkpoint holds the optimiser (state and RNG, `optim.protocol`), the
-env's state (each member's LO-heart state: the next step is warm-started from it, so it is part
-of the objective's state) and the evaluation records; it is written atomically after every
-round. Starting `minimize` with an existing checkpoint of the same configuration resumes it and
-reaches exactly the result of an uninterrupted run with the same seed.
+Checkpoint / resume: the checkpoint holds the optimiser's evaluation log (`optim.protocol`), the
+env's state (`venv.get_state()`: each member's LO-heart state, from which the next step is
+warm-started, so it is part of the objective's state), the evaluation records and the env's
+configuration, in the safe format of `lvenv.archive`; it is written atomically after every
+round. Starting `minimize` with an existing checkpoint of the same configuration replays the log
+and reaches exactly the result of an uninterrupted run with the same seed; a damaged checkpoint
+or one of another configuration is refused with its path (`optim.protocol.CheckpointError`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
-import pickle
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
-from lvenv import model
-from lvenv.identification import ACTION_BOUNDS
-from lvenv.params import stack
-from lvenv.patients import OBS_NAMES, Patient
+from lvenv.identification import ParameterSpace
+from lvenv.metrics import OBS_NAMES
+from lvenv.patients import Patient
+from lvenv.status import is_usable
+from lvenv.validation import integer
 from optim.methods import METHODS, make_optimizer
-from optim.protocol import BatchEvaluation, Bounds, FloatArray, OptimResult, Optimizer, padded, run, write_pickle_atomically
+from optim.protocol import (
+    BatchEvaluation,
+    Bounds,
+    CheckpointError,
+    FloatArray,
+    OptimResult,
+    Optimizer,
+    load_checkpoint,
+    padded,
+    resume,
+    run,
+    save_checkpoint,
+)
 
-__all__ = ["SearchSpace", "EnvHistory", "MinimizeResult", "EnvObjective", "minimize", "patient_values", "OK_STATUSES"]
+__all__ = ["EnvHistory", "MinimizeResult", "EnvObjective", "minimize", "patient_values", "unit_bounds"]
 
-#: Member statuses whose observations are used; any other status is an infeasible point.
-OK_STATUSES = ("ok", "not_converged")
-CHECKPOINT_FORMAT = "optim.minimize/1"
 LOG_FLOOR = 1e-12
 LOG_OBJECTIVE_METHODS = ("mads", "kriging")
+_RECORD_FIELDS = ("x", "f", "feasible", "mismatch", "obs", "status")
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class SearchSpace:
-    """Box of the parameters under identification, physical units, with log-scaled axes.
-
-    Search coordinate s_i = ln x_i where `log[i]`, else s_i = x_i; `bounds` is the box in s.
-    """
-
-    names: tuple[str, ...]
-    lower: FloatArray  # physical units of each parameter (ACTION_BOUNDS[name].units)
-    upper: FloatArray
-    log: NDArray[np.bool_]
-
-    @classmethod
-    def for_names(
-        cls, names: Sequence[str], overrides: Mapping[str, tuple[float, float]] | None = None
-    ) -> SearchSpace:
-        """Bounds of `lvenv.identification.ACTION_BOUNDS`, optionally narrowed per parameter."""
-        names = tuple(names)
-        overrides = dict(overrides or {})
-        if unknown := sorted(set(overrides) - set(names)):
-            raise ValueError(f"bounds given for {unknown}, which are not action parameters {names}")
-        lower, upper = [], []
-        for name in names:
-            b = ACTION_BOUNDS[name]
-            lo, hi = (float(v) for v in overrides.get(name, (b.lo, b.hi)))
-            if not (np.isfinite(lo) and np.isfinite(hi)) or not lo < hi:
-                raise ValueError(f"bounds of {name}: lower = {lo} must be < upper = {hi}, both finite")
-            if lo < b.lo or hi > b.hi:
-                raise ValueError(
-                    f"bounds of {name} = [{lo}, {hi}] {b.units} leave the env's range [{b.lo}, {b.hi}]"
-                )
-            lower.append(lo)
-            upper.append(hi)
-        log = np.array([ACTION_BOUNDS[n].log for n in names])
-        return cls(names, np.array(lower), np.array(upper), log)
-
-    @property
-    def bounds(self) -> Bounds:
-        with np.errstate(divide="ignore"):
-            return Bounds(self.to_search(self.lower), self.to_search(self.upper), self.names)
-
-    def to_search(self, x: ArrayLike) -> FloatArray:
-        x = np.asarray(x, np.float64)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(self.log, np.log(np.where(self.log, x, 1.0)), x)
-
-    def to_physical(self, s: ArrayLike) -> FloatArray:
-        s = np.asarray(s, np.float64)
-        x = np.where(self.log, np.exp(np.where(self.log, s, 0.0)), s)
-        return np.clip(x, self.lower, self.upper)
+def unit_bounds(space: ParameterSpace) -> Bounds:
+    """The optimisers' box: the unit cube of ``space``, with its parameter names."""
+    return Bounds(np.zeros(space.dimension), np.ones(space.dimension), space.names)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,33 +152,26 @@ def _unwrap(venv: Any) -> Any:
 
 
 class EnvObjective:
-    """Batch objective over a vector env: (q, k) search-space points, q <= num_envs → one step.
+    """Batch objective over a vector env: (q, k) unit-cube points of ``space``, q <= num_envs → one step.
 
     Keeps a record of every evaluation (observations, mismatch, status) for the result.
     """
 
-    def __init__(self, venv: Any, space: SearchSpace, log_objective: bool = False) -> None:
+    def __init__(self, venv: Any, space: ParameterSpace, log_objective: bool = False) -> None:
         env = _unwrap(venv)
         self.log_objective = bool(log_objective)
         self.venv = venv
         self.space = space
         self.num_envs = int(env.num_envs)
-        self.normalized = env.config.actions.mode == "normalized"
         self.action_map = env.config.actions
         self.records: list[dict[str, Any]] = []
 
-    def actions(self, x: FloatArray) -> FloatArray:
-        """Physical parameters (N, k) → env actions (physical, or [−1, 1] when normalised)."""
-        if self.normalized:
-            return 2.0 * np.asarray(self.action_map.to_unit(x)) - 1.0
-        return x
-
-    def _step(self, s: FloatArray) -> BatchEvaluation:
-        x = self.space.to_physical(s)
-        _, reward, _, _, info = self.venv.step(self.actions(x))
+    def _step(self, u: FloatArray) -> BatchEvaluation:
+        x = self.space.clip(self.space.from_unit(np.clip(u, 0.0, 1.0)))
+        _, reward, _, _, info = self.venv.step(self.action_map.to_action(x))
         status = np.asarray(info["status"]).astype(str)
         mismatch = np.asarray(info["mismatch"], np.float64)
-        feasible = np.isin(status, OK_STATUSES) & np.isfinite(mismatch) & np.isfinite(reward)
+        feasible = is_usable(status) & np.isfinite(mismatch) & np.isfinite(reward)
         mismatch = np.where(feasible, mismatch, np.inf)
         obs = np.stack([np.asarray(info[k], np.float64) for k in OBS_NAMES], axis=1)
         self.records.append(
@@ -246,7 +203,7 @@ class EnvObjective:
 def _patient(venv: Any) -> Patient:
     patients = list(getattr(_unwrap(venv), "patients", []))
     if not patients:
-        raise TypeError("minimize needs an lvenv vector env (gymnasium.make_vec('lvenv/LVHeart-v0', ...))")
+        raise ValueError("minimize needs an lvenv vector env (gymnasium.make_vec('lvenv/LVHeart-v0', ...))")
     if any(p != patients[0] for p in patients[1:]):
         raise ValueError("minimize fits one patient: every member of the vector env must hold the same patient")
     return patients[0]
@@ -273,23 +230,12 @@ def _options(method: str, options: dict[str, Any]) -> Any:
     return options_cls(**options)
 
 
-def _load(path: Path, like: Optimizer, env_key: tuple[Any, ...]) -> dict[str, Any]:
-    with open(path, "rb") as fh:
-        payload = pickle.load(fh)
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not an optim.minimize checkpoint ({CHECKPOINT_FORMAT})")
-    if payload["optimizer"].fingerprint() != like.fingerprint() or payload["env_key"] != env_key:
-        raise ValueError(
-            f"checkpoint {path} was written by a different configuration (method, seed, options, "
-            "bounds, env or patient); delete it or use the same settings"
-        )
-    return payload
-
-
-def _env_key(venv: Any, patient: Patient) -> tuple[Any, ...]:
+def _env_key(venv: Any, patient: Patient) -> dict[str, Any]:
+    """The env's configuration as JSON, stored in and compared against a checkpoint."""
     c = _unwrap(venv).config
-    return (c.actions, c.steps_per_beat, c.max_beats, c.rtol, c.obs_noise, int(_unwrap(venv).num_envs),
-            patient.to_json())
+    return {"actions": list(c.actions.names), "mode": c.actions.mode, "steps_per_beat": c.steps_per_beat,
+            "max_beats": c.max_beats, "rtol": c.rtol, "obs_noise": None if c.obs_noise is None else list(c.obs_noise),
+            "num_envs": int(_unwrap(venv).num_envs), "patient": patient.to_dict()}
 
 
 def minimize(
@@ -325,24 +271,23 @@ def minimize(
     Raises ValueError for an unknown method, a budget below one batch, bad bounds, or an env not
     built for optimisation; TypeError for an unknown option.
     """
-    if method not in METHODS:
+    if not isinstance(method, str) or method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(map(repr, METHODS))}")
+    budget, seed = integer("budget", budget, 1), integer("seed", seed, 0)
     penalty = float(options.pop("penalty", 1.0))
     opts = _options(method, options)
     patient = _patient(venv)
     _check_env(venv)
     env = _unwrap(venv)
-    space = SearchSpace.for_names(env.action_names, bounds)
+    space = ParameterSpace.for_names(env.action_names, bounds)
     start = patient_values(venv)
     if x0 is not None:
         if unknown := sorted(set(x0) - set(space.names)):
             raise ValueError(f"x0 names {unknown}, which are not action parameters {space.names}")
         start.update({k: float(v) for k, v in x0.items()})
-    x_start = np.clip([start[n] for n in space.names], space.lower, space.upper)
-    opt = make_optimizer(
-        method, space.bounds, env.num_envs, seed=seed, x0=space.to_search(x_start), penalty=penalty, options=opts
-    )
-    if int(budget) < opt.min_budget:
+    u_start = space.to_unit(space.clip(np.array([start[n] for n in space.names], float)))
+    opt = make_optimizer(method, unit_bounds(space), env.num_envs, seed=seed, x0=u_start, penalty=penalty, options=opts)
+    if budget < opt.min_budget:
         raise ValueError(
             f"budget = {budget} evaluations is below one batch of {opt.min_budget} "
             f"({method} with num_envs = {env.num_envs})"
@@ -355,35 +300,48 @@ def minimize(
     elapsed: list[float] = []
     path = Path(checkpoint) if checkpoint is not None else None
     if path is not None and path.exists():
-        payload = _load(path, opt, env_key)
-        opt = payload["optimizer"]
-        objective.records = payload["records"]
-        elapsed = payload["elapsed"]
-        env._state = jax.tree.map(lambda new, old: jax.device_put(new, old.sharding), payload["env_state"], env._state)
+        saved = load_checkpoint(path)
+        if saved.meta["user"].get("env") != env_key:
+            raise CheckpointError(
+                f"checkpoint {str(path)!r} was written for a different env or patient "
+                "(parameters, settings, num_envs or targets); delete it or use the same settings"
+            )
+        opt = resume(opt, saved)
+        objective.records = _split_records(saved.extra)
+        elapsed = saved.extra["elapsed"].tolist()
+        venv.set_state({k[len("env."):]: v for k, v in saved.extra.items() if k.startswith("env.")})
 
     def after_round(o: Optimizer) -> bool | None:
         elapsed.append(o.wall_time)
         if path is not None:
-            write_pickle_atomically(path, {"format": CHECKPOINT_FORMAT, "optimizer": o, "env_key": env_key,
-                         "env_state": jax.device_get(env._state), "records": objective.records,
-                         "elapsed": elapsed})
+            extra = {f"record.{k}": np.concatenate([r[k] for r in objective.records]) for k in _RECORD_FIELDS}
+            extra["record.sizes"] = np.array([len(r["x"]) for r in objective.records])
+            extra["elapsed"] = np.array(elapsed)
+            extra.update({f"env.{k}": v for k, v in venv.get_state().items()})
+            save_checkpoint(path, o, budget, extra, {"env": env_key, "method": method})
         return callback(o) if callback is not None else None
 
     res = run(opt, objective.objective(), budget, callback=after_round, progress=progress)
     return _result(method, patient, space, objective.records, elapsed, res)
 
 
+def _split_records(extra: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    """The per-round evaluation records of a checkpoint (inverse of the concatenation in `minimize`)."""
+    cuts = np.cumsum(extra["record.sizes"])[:-1]
+    split = {k: np.split(extra[f"record.{k}"], cuts) for k in _RECORD_FIELDS}
+    return [{k: split[k][i] for k in _RECORD_FIELDS} for i in range(len(extra["record.sizes"]))]
+
+
 def patient_values(venv: Any) -> dict[str, float]:
     """The patient's own values of the env's action parameters (physical units), by name."""
-    env = _unwrap(venv)
-    heart = model.model_params(stack([_patient(venv).heart]))
-    return dict(zip(env.action_names, map(float, np.asarray(env.config.actions.current(heart))[0])))
+    heart = _patient(venv).heart
+    return {name: float(heart.get(name)) for name in _unwrap(venv).action_names}
 
 
 def _result(
     method: str,
     patient: Patient,
-    space: SearchSpace,
+    space: ParameterSpace,
     records: list[dict[str, Any]],
     elapsed: list[float],
     res: OptimResult,

@@ -26,16 +26,24 @@ For a feasible point the optimisers minimise the exact L1-penalty merit (Fletche
 which has the constrained minimiser as its minimiser for rho above the constraint's Lagrange
 multiplier. The merit is non-smooth where the constraint is active, which slows direct search
 there; `optim.Mads` can instead treat h by the progressive barrier (`optim.barrier`).
+
+Checkpoints. An optimiser is a deterministic function of its configuration (fingerprint: class,
+bounds, batch size, seed, penalty, x0, options) and of the values it was told. A checkpoint is
+therefore the evaluation log (x, f, feasible, violation, batch) plus the fingerprint, written in
+the safe format of `lvenv.archive` (an .npz of arrays and JSON; no pickle). `resume` replays the
+log into a fresh optimiser of the same configuration, checking that every replayed `ask`
+returns exactly the logged points, so a resumed run reaches bit for bit the result of an
+uninterrupted one; a checkpoint of another configuration, a damaged file, or a log that does not
+replay (other code or platform) is refused with the path and what to do.
 """
 
 from __future__ import annotations
 
 import abc
 import dataclasses
+import json
 import os
-import pickle
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -44,10 +52,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from lvenv import archive
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = "optim/2"
+LOG_FIELDS = ("x", "f", "feasible", "violation", "batch")
+
+
+class CheckpointError(archive.ArchiveError):
+    """A checkpoint that cannot be resumed: damaged, of another configuration, or not replayable."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -367,41 +382,86 @@ BatchObjective = Callable[[FloatArray], Any]
 Callback = Callable[[Optimizer], bool | None]
 
 
-def write_pickle_atomically(path: str | os.PathLike[str], payload: Any) -> None:
-    """Pickle ``payload`` to ``path`` so a crash never leaves a half-written file:
-    write a temp file in the same folder, fsync, then os.replace."""
-    target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=target.name + ".", suffix=".tmp", dir=target.parent)
+def _plain(value: Any) -> Any:
+    """A fingerprint as plain JSON values (tuples → lists, arrays → lists, Bounds → dict)."""
+    if isinstance(value, Bounds):
+        return {"lower": value.lower.tolist(), "upper": value.upper.tolist(), "names": None if value.names is None else list(value.names)}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+@dataclasses.dataclass(frozen=True)
+class Checkpoint:
+    """A checkpoint read back: the evaluation log, extra arrays of the caller, and metadata."""
+
+    path: Path
+    log: dict[str, np.ndarray]
+    extra: dict[str, np.ndarray]
+    meta: dict[str, Any]
+
+
+def save_checkpoint(
+    path: str | os.PathLike[str],
+    optimizer: Optimizer,
+    budget: int,
+    extra: dict[str, ArrayLike] | None = None,
+    meta: dict[str, Any] | None = None,
+) -> None:
+    """Write the optimiser's evaluation log, the run's ``budget`` (what each `ask` was offered),
+    and a caller's ``extra`` arrays and JSON ``meta``, atomically in the safe format of
+    `lvenv.archive` (see the module docstring)."""
+    h = optimizer.history()
+    arrays = {name: getattr(h, name) for name in LOG_FIELDS}
+    arrays.update({f"extra.{k}": np.asarray(v) for k, v in (extra or {}).items()})
+    info = {"format": CHECKPOINT_FORMAT, "fingerprint": _plain(optimizer.fingerprint()), "budget": int(budget),
+            "wall_time": optimizer.wall_time, "user": meta or {}}
+    archive.save(path, arrays, info)
+
+
+def load_checkpoint(path: str | os.PathLike[str]) -> Checkpoint:
+    """Read a checkpoint; `CheckpointError` (with the path and what to do) if it is unusable."""
     try:
-        with os.fdopen(fd, "wb") as fh:
-            pickle.dump(payload, fh, protocol=5)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def save_checkpoint(path: str | os.PathLike[str], optimizer: Optimizer) -> None:
-    """Pickle the optimiser (state + RNG) atomically (:func:`write_pickle_atomically`)."""
-    write_pickle_atomically(path, {"format": CHECKPOINT_FORMAT, "optimizer": optimizer})
-
-
-def load_checkpoint(path: str | os.PathLike[str], like: Optimizer | None = None) -> Optimizer:
-    """Load a checkpoint; with `like`, insist that it was written by the same configuration."""
-    with open(path, "rb") as fh:
-        payload = pickle.load(fh)
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not an optim checkpoint (format {CHECKPOINT_FORMAT})")
-    opt = payload["optimizer"]
-    if like is not None and opt.fingerprint() != like.fingerprint():
-        raise ValueError(
-            f"checkpoint {path} was written by a different optimiser configuration "
-            f"({opt.fingerprint()[0]}, seed {opt.seed}); delete it or use the same settings"
+        arrays, meta = archive.load(path, "checkpoint")
+    except archive.ArchiveError as err:
+        raise CheckpointError(str(err)) from None
+    if meta.get("format") != CHECKPOINT_FORMAT or any(name not in arrays for name in LOG_FIELDS):
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} is not an optim checkpoint of format {CHECKPOINT_FORMAT}; "
+            "delete it or move it away to start afresh"
         )
-    return opt
+    log = {name: arrays[name] for name in LOG_FIELDS}
+    extra = {name[len("extra."):]: v for name, v in arrays.items() if name.startswith("extra.")}
+    return Checkpoint(Path(path), log, extra, meta)
+
+
+def resume(optimizer: Optimizer, checkpoint: Checkpoint) -> Optimizer:
+    """Replay `checkpoint`'s log into `optimizer` (fresh, same configuration) and return it."""
+    where = str(checkpoint.path)
+    if optimizer.evaluations:
+        raise ValueError("resume() needs a fresh optimiser")
+    if json.loads(json.dumps(_plain(optimizer.fingerprint()))) != checkpoint.meta["fingerprint"]:
+        raise CheckpointError(
+            f"checkpoint {where!r} was written by a different optimiser configuration "
+            f"({checkpoint.meta['fingerprint'][0]}, seed {checkpoint.meta['fingerprint'][3]}); "
+            "delete it or use the same settings"
+        )
+    log = checkpoint.log
+    for b in np.unique(log["batch"]):
+        rows = log["batch"] == b
+        x = optimizer.ask(int(checkpoint.meta["budget"]) - optimizer.evaluations)
+        if x.shape != log["x"][rows].shape or not np.array_equal(x, log["x"][rows]):
+            raise CheckpointError(
+                f"checkpoint {where!r} does not replay: batch {int(b)} asks other points than it logged "
+                "(written by other code or on another platform); delete it to start afresh"
+            )
+        optimizer.tell(x, BatchEvaluation(log["f"][rows], log["feasible"][rows], log["violation"][rows]))
+    optimizer.wall_time = float(checkpoint.meta["wall_time"])
+    return optimizer
 
 
 def _interactive() -> bool:
@@ -419,9 +479,9 @@ def run(
     """Drive `optimizer` with `batch_objective` until it stops or `budget` evaluations are used.
 
     Each round is one `ask` (at most `batch_size` points: one vector-env step), one call of
-    `batch_objective(X)` and one `tell`. With `checkpoint`, the optimiser is saved after every
+    `batch_objective(X)` and one `tell`. With `checkpoint`, the evaluation log is saved after every
     round; if the file exists when `run` starts, the run resumes from it and reaches exactly the
-    result of an uninterrupted run. `callback(optimizer)` runs after each round; returning True
+    result of an uninterrupted run (module docstring). `callback(optimizer)` runs after each round; returning True
     stops the run (reason "callback"). `progress=None` shows a tqdm bar only on a terminal.
     """
     budget = int(budget)
@@ -431,7 +491,7 @@ def run(
         )
     opt = optimizer
     if checkpoint is not None and Path(checkpoint).exists():
-        opt = load_checkpoint(checkpoint, like=optimizer)
+        opt = resume(optimizer, load_checkpoint(checkpoint))
     show = _interactive() if progress is None else bool(progress)
     bar = None
     if show:
@@ -453,7 +513,7 @@ def run(
             opt.tell(x, ev)
             opt.wall_time += time.perf_counter() - t0
             if checkpoint is not None:
-                save_checkpoint(checkpoint, opt)
+                save_checkpoint(checkpoint, opt, budget)
             if bar is not None:
                 bar.update(len(x))
                 bar.set_postfix(best=f"{opt.best_merit:.4g}")

@@ -24,9 +24,9 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import gymnasium  # noqa: E402
 
-import lvenv  # noqa: E402,F401
+import lvenv  # noqa: E402
+from lvenv import model  # noqa: E402
 from lvenv.devices import shard_members  # noqa: E402
-from lvenv.env import core  # noqa: E402
 from lvenv.simulation import run_beats_jit  # noqa: E402
 
 
@@ -35,7 +35,7 @@ def measure(num_envs: int, repeats: int, steps_per_beat: int, seed: int = 0) -> 
     space = venv.single_action_space
     rng = np.random.default_rng(seed)
     unit = rng.uniform(0.2, 0.8, (num_envs, space.shape[0]))
-    actions = np.asarray(venv.config.actions.from_unit(jnp.asarray(unit)))
+    actions = venv.config.actions.space.from_unit(unit)
     venv.reset(seed=seed)
     for _ in range(2):
         venv.step(actions)
@@ -46,10 +46,8 @@ def measure(num_envs: int, repeats: int, steps_per_beat: int, seed: int = 0) -> 
         env_times.append(time.perf_counter() - t0)
 
     config = venv.config
-    padded, _ = shard_members(actions, num_envs, batch_axis_of=lambda leaf: 0)
-    values, _, _ = config.actions.to_physical(padded, venv._params.heart)
-    heart = core._with_action(venv._params.heart, values, config.actions)
-    y = venv._state.y
+    params = model.model_params(lvenv.stack([venv.member_heart(i) for i in range(num_envs)]))
+    (heart, y), _ = shard_members((params, venv.get_state()["y"].T), num_envs)
     core_call = lambda: jax.device_get(run_beats_jit(heart, y, jnp.asarray(config.rtol), steps=config.steps_per_beat, max_beats=config.max_beats, steady=True, record=False))
     out = core_call()
     core_times = []

@@ -1,8 +1,8 @@
 """Benchmark (JSON): our OrthoMADS against NOMAD 4, scipy and our other methods on the inverse problem.
 
 Every method fits the same patients through the same vector env (one env per patient, num_envs
-members, compiled once before timing), on the same search space (`optim.minimize.SearchSpace`:
-log axes for τ2, Sa, R3, C, Cat), from the same start (the patient's own parameters), with the
+members, compiled once before timing), on the same search space (the unit cube of
+`lvenv.identification.ParameterSpace`: log axes for τ2, Sa, R3, C, Cat), from the same start (the patient's own parameters), with the
 same evaluation budget and the same objective (`optim.minimize`: f = −reward, log10 for MADS and
 NOMAD as in `minimize`'s default for MADS):
 
@@ -33,7 +33,8 @@ import numpy as np
 from lvenv.patients import builtin
 from optim import minimize
 from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
-from optim.minimize import EnvObjective, SearchSpace, patient_values
+from lvenv.identification import ParameterSpace
+from optim.minimize import EnvObjective, patient_values, unit_bounds
 
 
 class BudgetExhausted(Exception):
@@ -45,7 +46,7 @@ class Recorder:
     points, records mismatch and elapsed time per evaluation, stops at the budget."""
 
     def __init__(self, venv, budget: int, log_objective: bool) -> None:
-        self.inner = EnvObjective(venv, SearchSpace.for_names(venv.unwrapped.action_names), log_objective)
+        self.inner = EnvObjective(venv, ParameterSpace.for_names(venv.unwrapped.action_names), log_objective)
         self.step = self.inner.objective()
         self.budget, self.n = budget, venv.unwrapped.num_envs
         self.mismatch: list[float] = []
@@ -95,9 +96,9 @@ def run_one(method: str, venv, budget: int, seed: int, target: float) -> dict:
     # NOMAD evaluates its last block whole (it may pass MAX_BB_EVAL by less than a block)
     rec = Recorder(venv, budget + (venv.unwrapped.num_envs if method == "nomad" else 0), log_objective=method == "nomad")
     space = rec.inner.space
-    b = space.bounds
+    b = unit_bounds(space)
     own = patient_values(venv)
-    s0 = space.to_search(np.clip([own[n] for n in space.names], space.lower, space.upper))
+    s0 = space.to_unit(space.clip(np.array([own[n] for n in space.names])))
     try:
         if method == "nomad":
             from optim.nomad_ref import nomad_minimize

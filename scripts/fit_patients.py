@@ -2,6 +2,7 @@
 
     python scripts/fit_patients.py [--budget 480] [--num-envs 16] [--out out/fit]
     python scripts/fit_patients.py --synthetic 10 --method cma     # synthetic recovery
+    python scripts/fit_patients.py --fidelity [--fidelity-mesh 6]  # also check each patient's best fit against the 3-D oracle
 """
 
 from __future__ import annotations
@@ -12,13 +13,12 @@ import math
 import numpy as np
 
 from lvenv.identification import ACTION_BOUNDS
-from lvenv.units import METRIC_DISPLAY
+from lvenv.metrics import display, header
 from optim.fit import fit_patients, synthetic_recovery
 
 
 def _show(name: str, value: float) -> str:
-    label, unit, convert = METRIC_DISPLAY[name]
-    return f"{convert(value):.1f}"
+    return display(name, value, 1)
 
 
 def _param(name: str, value: float) -> str:
@@ -29,7 +29,7 @@ def print_fits(rows) -> None:
     names = list(rows[0].parameters)
     targets = list(rows[0].targets)
     heads = [f"{n} ({'ms' if n == 'tau2' else ACTION_BOUNDS[n].units})" for n in names]
-    tcols = [f"{METRIC_DISPLAY[t][0]} ({METRIC_DISPLAY[t][1]}) fit/target [err %]" for t in targets]
+    tcols = [f"{header(t)} fit/target [err %]" for t in targets]
     print("patient        method   " + " | ".join(heads))
     for r in rows:
         print(f"{r.patient:14s} {r.method:8s} " + " | ".join(f"{_param(n, r.parameters[n]):>{len(h)}s}" for n, h in zip(names, heads)))
@@ -64,6 +64,9 @@ def main() -> None:
     ap.add_argument("--out", default="out/fit", help="folder for the PV-loop plots")
     ap.add_argument("--synthetic", type=int, default=0, metavar="N", help="instead: synthetic recovery of N random truths")
     ap.add_argument("--method", default="cma", help="method of the synthetic recovery")
+    ap.add_argument("--fidelity", action="store_true", help="run the 3-D oracle at each patient's best fit (optim.congruency.check_fidelity)")
+    ap.add_argument("--fidelity-mesh", type=float, default=6.0, help="FE mesh size h (mm) of the fidelity check")
+    ap.add_argument("--fidelity-beats", type=int, default=2, help="FE beats from the LO steady state")
     a = ap.parse_args()
     if a.synthetic:
         rep = synthetic_recovery(a.synthetic, a.method, a.num_envs, a.budget or 1600, a.seed, a.steps_per_beat)
@@ -83,6 +86,25 @@ def main() -> None:
     worst = max(r.mismatch for r in rows)
     print(f"\nworst mismatch {100 * worst:.2f} % (goal < 3 %); plots in {a.out}/"
           if math.isfinite(worst) else "\nsome fit found no valid point")
+    if a.fidelity:
+        print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats)
+
+
+def print_fidelity(rows, mesh_size: float, beats: int) -> None:
+    """The 3-D oracle at each patient's best fit: LO, FE and their difference per target."""
+    from lvenv.patients import builtin
+    from optim.congruency import FIDELITY_TOLERANCE, check_fidelity
+
+    for patient in dict.fromkeys(r.patient for r in rows):
+        best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
+        heart = builtin(patient).heart.replace(**best.parameters)
+        rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats)
+        print(f"\nfidelity of {patient} ({best.method} fit) against the 3-D oracle (h = {mesh_size:g} mm, {beats} beats): "
+              f"C {100 * rep.C:.2f} %, {'within' if rep.ok else 'OUTSIDE'} tolerance")
+        for name, (lo, fe, diff) in rep.rows.items():
+            kind, bound = FIDELITY_TOLERANCE[name]
+            shown = f"{100 * diff:+.2f} %" if kind == "rel" else f"{_show(name, diff) if name != 'EF' else f'{100 * diff:+.2f} points'}"
+            print(f"  {header(name):18s} LO {_show(name, lo):>7s}  FE {_show(name, fe):>7s}  FE − LO {shown:>12s}  {'ok' if rep.within[name] else 'OUT'}")
 
 
 if __name__ == "__main__":

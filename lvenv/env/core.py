@@ -1,8 +1,10 @@
-"""Pure, batched environment dynamics: ``reset(params, key)`` and ``step(state, action, params)``.
+"""Pure, batched environment dynamics: ``reset(key, params)`` and ``step(key, state, action, params)``.
 
-gymnax style: parameters are passed in (so per-member patients are free), the PRNG key lives in
-the state, and the Gymnasium classes in :mod:`lvenv.env.vector` / :mod:`lvenv.env.single` jit
-these once. There is no Python loop over members and no host sync inside.
+gymnax style: parameters are passed in (so per-member patients are free), the PRNG key is an
+argument (it only draws the optional measurement noise), and the Gymnasium classes in
+:mod:`lvenv.env.vector` / :mod:`lvenv.env.single` jit these once; :mod:`lvenv.env.functional`
+exposes them per member for JAX code that jits and vmaps the heart itself. There is no Python
+loop over members and no host sync inside.
 
 One step evaluates one parameter set per member to steady state with the LO heart
 (:func:`lvenv.simulation.run_beats`), **warm-started** from that member's state at the end of its
@@ -11,14 +13,17 @@ start with the new parameters would have (P_c and P_at move by ΔV / (C + Cat)),
 does not depend on the order in which parameter sets were visited, only the number of beats
 to reach steady state does.
 
-Reward (per member), with relative errors e_k = (o_k − t_k) / t_k over the patient's targets::
+Reward (per member), with relative errors e_k = (o_k − t_k) / t_k over the patient's targets and
+weights w_k normalised so that max_k w_k = 1 (host-side, :func:`env_params`)::
 
     r = − Σ_k w_k e_k² / Σ_k w_k  −  κ (d / P_lo)²,
     d = max(0, P_lo − P_ao_mean, P_ao_mean − P_hi),   [P_lo, P_hi] = [80, 120] mmHg, κ = 1
 
 computed on the noise-free model output. ``mismatch`` = Σ_k w_k |e_k| / Σ_k w_k; an episode
 terminates when it falls below the tolerance, or when the simulation fails or the action is not
-finite (reward :data:`FAILURE_REWARD`). Autoreset: NEXT_STEP (the step after an episode ends
+finite (reward :data:`FAILURE_REWARD`, mismatch +inf). A failed member's observation is all
+zeros (inside the observation space) and its named metrics in ``info["metrics"]`` are NaN; its
+``status`` says why (:mod:`lvenv.status`). Autoreset: NEXT_STEP (the step after an episode ends
 returns that member's reset observation, reward 0, and ignores its action), or DISABLED
 (``Config.autoreset = False``: every step evaluates every member's action, as optimisers need).
 """
@@ -33,16 +38,16 @@ import numpy as np
 
 from lvenv import model
 from lvenv.env.spaces import ActionMap
+from lvenv.metrics import OBS_NAMES
 from lvenv.model import IDX_PAT, IDX_PC, IDX_V, ModelParams
 from lvenv.params import stack
-from lvenv.patients import OBS_NAMES
-from lvenv.simulation import NOT_CONVERGED, OK, run_beats
+from lvenv.simulation import run_beats
+from lvenv.status import INVALID_ACTION, is_usable
 from lvenv.units import mmhg_to_kpa
 
-__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "FAILURE_REWARD", "INVALID_ACTION"]
+__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "FAILURE_REWARD"]
 
 FAILURE_REWARD = -10.0
-INVALID_ACTION = 100  # status code for a non-finite action (simulation codes are 0..4)
 BAND_KPA = (mmhg_to_kpa(80.0), mmhg_to_kpa(120.0))
 BAND_WEIGHT = 1.0
 _I_MEAN = OBS_NAMES.index("P_ao_mean")
@@ -62,8 +67,7 @@ class EnvParams:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class EnvState:
-    y: jax.Array  # (9, N) LO-heart state at the end of the last step
-    key: jax.Array
+    y: jax.Array  # (9, N) LO-heart state at the end of the last step (the next step's warm start)
     steps: jax.Array  # (N,) steps taken in the current episode
     needs_reset: jax.Array  # (N,) the previous step ended this member's episode
 
@@ -84,10 +88,7 @@ class Config:
 
 def _with_action(heart: ModelParams, values: jax.Array, actions: ActionMap) -> ModelParams:
     """Replace the action parameters of every member (values (N, k), physical units)."""
-    parts = {"lo": heart.lo, "cell": heart.cell, "circ": heart.circ}
-    for i, (part, field) in enumerate(actions.locations):
-        parts[part] = dataclasses.replace(parts[part], **{field: values[:, i]})
-    return dataclasses.replace(heart, **parts)
+    return heart.replace(**{name: values[:, i] for i, name in enumerate(actions.names)})
 
 
 def _conserve_volume(y: jax.Array, y_cold: jax.Array, heart: ModelParams) -> jax.Array:
@@ -99,7 +100,13 @@ def _conserve_volume(y: jax.Array, y_cold: jax.Array, heart: ModelParams) -> jax
 
 
 def _observe(out) -> jax.Array:
+    """Named metrics (N, n_obs): NaN where the member failed."""
     return jnp.stack([out["metrics"][k] for k in OBS_NAMES], axis=1)
+
+
+def _observation(metrics: jax.Array, usable: jax.Array) -> jax.Array:
+    """What the agent sees: the metrics, or zeros for a failed member (kept inside the space)."""
+    return jnp.where(usable[:, None], metrics, 0.0)
 
 
 def _score(obs: jax.Array, params: EnvParams):
@@ -124,19 +131,25 @@ def _evaluate(heart: ModelParams, y0: jax.Array, config: Config):
     return run_beats(heart, y0, config.rtol, steps=config.steps_per_beat, max_beats=config.max_beats, steady=True, record=False)
 
 
-def reset(params: EnvParams, key: jax.Array, config: Config):
-    """Every member at its patient's own parameters, simulated to steady state from a cold start."""
+def reset(key: jax.Array, params: EnvParams, config: Config):
+    """Every member at its patient's own parameters, simulated to steady state from a cold start.
+
+    Returns ``(state, obs, info)``; ``key`` draws the measurement noise of ``obs``.
+    """
     out = _evaluate(params.heart, params.y_cold, config)
-    key, sub = jax.random.split(key)
-    obs = _observe(out)
-    n = obs.shape[0]
-    state = EnvState(y=out["y"], key=key, steps=jnp.zeros((n,), jnp.int32), needs_reset=jnp.zeros((n,), bool))
-    info = {"metrics": obs, "status": out["status"], "converged": out["converged"], "beats": out["beats"], "parameters": config.actions.current(params.heart)}
-    return state, _noisy(obs, sub, config), info
+    metrics = _observe(out)
+    n = metrics.shape[0]
+    state = EnvState(y=out["y"], steps=jnp.zeros((n,), jnp.int32), needs_reset=jnp.zeros((n,), bool))
+    info = {"metrics": metrics, "status": out["status"], "converged": out["converged"], "beats": out["beats"], "parameters": config.actions.current(params.heart)}
+    return state, _noisy(_observation(metrics, is_usable(out["status"])), key, config), info
 
 
-def step(state: EnvState, action: jax.Array, params: EnvParams, config: Config):
-    """One environment step for all members (see module docstring)."""
+def step(key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams, config: Config):
+    """One environment step for all members (see module docstring).
+
+    Returns ``(state, obs, reward, terminated, truncated, info)``; ``key`` draws the
+    measurement noise of ``obs``.
+    """
     values, clipped, finite = config.actions.to_physical(action, params.heart)
     fresh = state.needs_reset
     heart = _with_action(params.heart, values, config.actions)
@@ -144,9 +157,9 @@ def step(state: EnvState, action: jax.Array, params: EnvParams, config: Config):
     y_start = jnp.where(fresh, params.y_cold, state.y)
     y_start = _conserve_volume(y_start, params.y_cold, heart)
     out = _evaluate(heart, y_start, config)
-    obs = _observe(out)
-    reward, mismatch = _score(obs, params)
-    sim_ok = (out["status"] == OK) | (out["status"] == NOT_CONVERGED)
+    metrics = _observe(out)
+    reward, mismatch = _score(metrics, params)
+    sim_ok = is_usable(out["status"])
     invalid = ~finite & ~fresh
     failed = (~sim_ok | invalid) & ~fresh
     status = jnp.where(invalid, INVALID_ACTION, out["status"])
@@ -155,10 +168,10 @@ def step(state: EnvState, action: jax.Array, params: EnvParams, config: Config):
     terminated = ~fresh & (failed | (mismatch < config.tolerance))
     at_limit = jnp.zeros_like(fresh) if config.max_episode_steps is None else steps >= config.max_episode_steps
     truncated = ~fresh & ~terminated & at_limit
-    key, sub = jax.random.split(state.key)
-    new_state = EnvState(y=out["y"], key=key, steps=steps, needs_reset=(terminated | truncated) & config.autoreset)
+    new_state = EnvState(y=out["y"], steps=steps, needs_reset=(terminated | truncated) & config.autoreset)
+    shown = sim_ok & ~invalid  # a rejected action's stand-in simulation is not reported
     info = {
-        "metrics": obs,
+        "metrics": jnp.where(shown[:, None], metrics, jnp.nan),
         "status": status,
         "converged": out["converged"],
         "beats": out["beats"],
@@ -167,13 +180,17 @@ def step(state: EnvState, action: jax.Array, params: EnvParams, config: Config):
         "reset": fresh,
         "parameters": config.actions.current(heart),
     }
-    return new_state, _noisy(obs, sub, config), reward, terminated, truncated, info
+    return new_state, _noisy(_observation(metrics, shown), key, config), reward, terminated, truncated, info
 
 
 def env_params(patients) -> EnvParams:
-    """Host-side NumPy: stack the patients' hearts, cold starts, targets and weights (batch-last)."""
+    """Host-side NumPy: stack the patients' hearts, cold starts, targets and weights (batch-last).
+
+    Each member's weights are divided by their maximum, so Σ w ≥ 1 and huge weights cannot
+    overflow (the reward and mismatch are invariant to a common scale of the weights).
+    """
     heart = model.model_params(stack([p.heart for p in patients]))
     y_cold = model.initial_state(heart)
     targets = np.array([[p.targets.get(k, 1.0) for k in OBS_NAMES] for p in patients]).T
     weights = np.array([[p.weight(k) for k in OBS_NAMES] for p in patients]).T
-    return EnvParams(heart, y_cold, targets, weights)
+    return EnvParams(heart, y_cold, targets, weights / weights.max(axis=0, keepdims=True))

@@ -8,6 +8,7 @@ import gymnasium
 import numpy as np
 
 from lvenv.env.vector import LVHeartVectorEnv
+from lvenv.validation import InputError, real_array
 
 __all__ = ["LVHeartEnv"]
 
@@ -44,7 +45,10 @@ class LVHeartEnv(gymnasium.Env):
         return obs[0], self._one(info)
 
     def step(self, action):
-        obs, reward, terminated, truncated, info = self._vec.step(np.asarray(action, np.float64)[None])
+        arr = real_array("action", action)
+        if arr.shape != (len(self.action_names),):
+            raise InputError(f"action has shape {arr.shape}; expected ({len(self.action_names)},) with entries {self.action_names}")
+        obs, reward, terminated, truncated, info = self._vec.step(arr[None])
         return obs[0], float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._one(info)
 
     def render(self):

@@ -15,19 +15,25 @@ from typing import Any, Sequence
 
 import gymnasium
 import jax
-import jax.numpy as jnp
 import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
+from lvenv import status
 from lvenv.devices import shard_members
 from lvenv.env import core
 from lvenv.env.spaces import ActionMap, observation_space
 from lvenv.identification import DEFAULT_ACTION_PARAMS
-from lvenv.patients import OBS_NAMES, Patient, resolve
-from lvenv.simulation import STATUS
+from lvenv.metrics import OBS_NAMES
+from lvenv.model import N_STATES
+from lvenv.patients import Patient, resolve
+from lvenv.simulation import check_settings
+from lvenv.validation import InputError, choice, integer, real, real_array
 
-__all__ = ["LVHeartVectorEnv", "status_names", "TRACES"]
+__all__ = ["LVHeartVectorEnv", "TRACES", "STATE_FIELDS"]
+
+#: Fields of :meth:`LVHeartVectorEnv.get_state` (host NumPy arrays, member axis first).
+STATE_FIELDS = ("y", "steps", "needs_reset", "key", "parameters")
 
 #: Traces of the jitted reset/step per static configuration. Jitting once at module level lets
 #: every env with the same configuration and size share one compiled step.
@@ -47,28 +53,25 @@ _reset_jit = jax.jit(_counted(core.reset), static_argnames="config")
 _step_jit = jax.jit(_counted(core.step), static_argnames="config")
 
 
-def status_names(codes: np.ndarray) -> np.ndarray:
-    """Status codes → strings (:data:`lvenv.STATUS`, plus ``"invalid_action"``)."""
-    names = {i: s for i, s in enumerate(STATUS)} | {core.INVALID_ACTION: "invalid_action"}
-    return np.array([names[int(c)] for c in np.ravel(codes)]).reshape(np.shape(codes))
-
-
 class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
     """Vectorised ``lvenv/LVHeart-v0``; see :mod:`lvenv.env.core` for dynamics and reward.
 
     Args:
-        num_envs: members N.
-        patient: built-in name, :class:`~lvenv.patients.Patient`, record dict, or a list with one
-            per member.
+        num_envs: members N (an integer ≥ 1).
+        patient: built-in name, path to a patient JSON record, :class:`~lvenv.patients.Patient`,
+            record dict, or a list with one per member.
         action_params: names of the parameters under identification (default τ2, Sa, R2, R3, C, Cat).
         action_mode: ``"physical"`` (bounds of :mod:`lvenv.identification`) or ``"normalized"`` ([−1, 1]).
-        max_episode_steps: truncation (``None``: never).
-        tolerance: terminate when the mean relative mismatch falls below it.
+        max_episode_steps: truncation (``None``: never; else an integer ≥ 1).
+        tolerance: terminate when the mean relative mismatch falls below it (≥ 0).
         obs_noise: relative standard deviation of Gaussian measurement noise (scalar or per
-            observation); drawn from the env's own key.
+            observation, ≥ 0); drawn from the env's own key.
         steps_per_beat, max_beats, rtol: LO-heart integration (:func:`lvenv.simulate`).
         autoreset_mode: ``NEXT_STEP`` (default) or ``DISABLED`` (every step evaluates every
             member's action; what optimisers use).
+
+    Every argument is checked here; a bad one raises ``ValueError`` naming it, its value and
+    what is allowed. ``step`` takes actions of shape exactly ``(num_envs, len(action_params))``.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": ["rgb_array"], "render_fps": 1}
@@ -88,27 +91,32 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ):
-        if num_envs < 1:
-            raise ValueError(f"num_envs = {num_envs} must be ≥ 1")
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode = {render_mode!r}; supported: None, 'rgb_array'")
-        autoreset_mode = AutoresetMode(autoreset_mode)
-        if autoreset_mode not in (AutoresetMode.NEXT_STEP, AutoresetMode.DISABLED):
-            raise ValueError(f"autoreset_mode = {autoreset_mode.value!r}; supported: NextStep, Disabled")
+        num_envs = integer("num_envs", num_envs, 1)
+        choice("render_mode", render_mode, (None, "rgb_array"))
+        try:
+            autoreset_mode = AutoresetMode(autoreset_mode)
+        except ValueError:
+            autoreset_mode = None
+        choice("autoreset_mode", autoreset_mode, (AutoresetMode.NEXT_STEP, AutoresetMode.DISABLED))
+        settings = check_settings(steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol)
+        if max_episode_steps is not None:
+            max_episode_steps = integer("max_episode_steps", max_episode_steps, 1)
+        noise = real_array("obs_noise", obs_noise)
+        if noise.shape not in ((), (len(OBS_NAMES),)) or np.any(~np.isfinite(noise) | (noise < 0)):
+            raise InputError(f"obs_noise = {obs_noise!r} must be one finite number ≥ 0 or {len(OBS_NAMES)} of them (one per observation {OBS_NAMES})")
+        noise = np.broadcast_to(noise, (len(OBS_NAMES),))
         self.metadata = {**self.metadata, "autoreset_mode": autoreset_mode}
-        noise = np.broadcast_to(np.asarray(obs_noise, float), (len(OBS_NAMES),))
-        if np.any(~np.isfinite(noise) | (noise < 0)):
-            raise ValueError(f"obs_noise = {obs_noise!r} must be finite and ≥ 0")
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.patients = resolve(patient, num_envs)
         self.config = core.Config(
-            actions=ActionMap(tuple(action_params), action_mode), steps_per_beat=steps_per_beat, max_beats=max_beats,
-            rtol=rtol, tolerance=tolerance, max_episode_steps=max_episode_steps,
+            actions=ActionMap(action_params, action_mode), steps_per_beat=settings["steps_per_beat"],
+            max_beats=settings["max_beats"], rtol=settings["rtol"], tolerance=real("tolerance", tolerance, 0.0),
+            max_episode_steps=max_episode_steps,
             obs_noise=tuple(map(float, noise)) if np.any(noise > 0) else None,
             autoreset=autoreset_mode == AutoresetMode.NEXT_STEP,
         )
-        self.single_action_space = self.config.actions.space()
+        self.single_action_space = self.config.actions.box()
         self.action_space = batch_space(self.single_action_space, num_envs)
         self.single_observation_space = observation_space()
         self.observation_space = batch_space(self.single_observation_space, num_envs)
@@ -116,6 +124,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.obs_names = OBS_NAMES
         self._params, self._padded = shard_members(core.env_params(self.patients), num_envs)
         self._state: core.EnvState | None = None
+        self._key: jax.Array | None = None
         self._parameters: np.ndarray | None = None  # (num_envs, k) action parameters of the last step
 
     @property
@@ -123,16 +132,10 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         """How often the jitted reset/step were traced for this env's configuration (all instances)."""
         return TRACES[self.config]
 
-    def _reset(self, params, key):
-        return _reset_jit(params, key, config=self.config)
-
-    def _step(self, state, action, params):
-        return _step_jit(state, action, params, config=self.config)
-
     def _info(self, raw: dict[str, Any]) -> dict[str, Any]:
         metrics = np.asarray(raw["metrics"])[: self.num_envs]
         info: dict[str, Any] = {name: metrics[:, i] for i, name in enumerate(OBS_NAMES)}
-        info["status"] = status_names(np.asarray(raw["status"])[: self.num_envs])
+        info["status"] = status.names(np.asarray(raw["status"])[: self.num_envs])
         for key in ("converged", "beats", "mismatch", "clipped", "reset"):
             if key in raw:
                 info[key] = np.asarray(raw[key])[: self.num_envs]
@@ -143,37 +146,91 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         return info
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Reset every member: its patient's own parameters simulated to steady state from a cold start."""
+        """Reset every member: its patient's own parameters simulated to steady state from a cold start.
+
+        ``options={"patient": ...}`` first replaces the patients (anything ``patient=`` takes).
+        """
+        if options is not None:
+            if not isinstance(options, dict) or set(options) - {"patient"}:
+                raise InputError(f"reset options = {options!r}: the only option is 'patient'")
+            if "patient" in options:
+                self.patients = resolve(options["patient"], self.num_envs)
+                self._params, _ = shard_members(core.env_params(self.patients), self.num_envs)
         super().reset(seed=seed)
         if seed is None:
             seed = int(self.np_random.integers(2**31 - 1))
-        state, obs, info = self._reset(self._params, jax.random.PRNGKey(seed))
-        self._state = state
+        key, sub = jax.random.split(jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1)))
+        state, obs, info = _reset_jit(sub, self._params, config=self.config)
+        self._state, self._key = state, key
         obs, info = jax.device_get((obs, info))
         self._parameters = np.asarray(info["parameters"])[: self.num_envs]
         return np.asarray(obs)[: self.num_envs], self._info(info)
 
+    def _check_actions(self, actions) -> np.ndarray:
+        expected = (self.num_envs, len(self.action_names))
+        arr = real_array("actions", actions)
+        if arr.shape != expected:
+            raise InputError(f"actions has shape {arr.shape}; expected (num_envs, {len(self.action_names)}) = {expected}, one row per member with columns {self.action_names}")
+        return arr
+
     def step(self, actions):
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
-        actions = np.asarray(actions, dtype=np.float64).reshape(self.num_envs, len(self.action_names))
-        actions, _ = shard_members(actions, self.num_envs, batch_axis_of=lambda leaf: 0)
-        state, obs, reward, terminated, truncated, info = self._step(self._state, actions, self._params)
+        actions, _ = shard_members(self._check_actions(actions), self.num_envs, batch_axis_of=lambda leaf: 0)
+        self._key, sub = jax.random.split(self._key)
+        state, obs, reward, terminated, truncated, info = _step_jit(sub, self._state, actions, self._params, config=self.config)
         self._state = state
         obs, reward, terminated, truncated, info = jax.device_get((obs, reward, terminated, truncated, info))
         n = self.num_envs
         self._parameters = np.asarray(info["parameters"])[:n]
         return np.asarray(obs)[:n], np.asarray(reward)[:n], np.asarray(terminated)[:n], np.asarray(truncated)[:n], self._info(info)
 
+    @property
+    def parameters(self) -> dict[str, np.ndarray]:
+        """Each member's current value of every action parameter (physical units), by name."""
+        values = self._parameters if self._parameters is not None else np.array([[float(p.heart.get(n)) for n in self.action_names] for p in self.patients])
+        return {name: values[:, j].copy() for j, name in enumerate(self.action_names)}
+
+    def get_state(self) -> dict[str, np.ndarray]:
+        """The env's state as host arrays (:data:`STATE_FIELDS`): ``y`` (num_envs, 9), the LO-heart
+        state each member's next step is warm-started from; ``steps`` and ``needs_reset`` (num_envs,),
+        the episode bookkeeping; ``key``, the PRNG key of the measurement noise; ``parameters``
+        (num_envs, k), the members' current action parameters. It is everything a resumed run needs."""
+        if self._state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before get_state()")
+        y, steps, needs_reset, key = jax.device_get((self._state.y, self._state.steps, self._state.needs_reset, self._key))
+        n = self.num_envs
+        return {"y": np.asarray(y)[:, :n].T.copy(), "steps": np.asarray(steps)[:n].copy(), "needs_reset": np.asarray(needs_reset)[:n].copy(),
+                "key": np.asarray(key).copy(), "parameters": self._parameters.copy()}
+
+    def set_state(self, state: dict[str, np.ndarray]) -> None:
+        """Restore a state from :meth:`get_state` (shapes and values are checked; the env must be reset)."""
+        if self._state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before set_state()")
+        n, k = self.num_envs, len(self.action_names)
+        expected = dict(zip(STATE_FIELDS, ((n, N_STATES), (n,), (n,), np.shape(self._key), (n, k))))
+        if not isinstance(state, dict) or set(state) != set(expected):
+            raise InputError(f"state must be a dict with the fields {sorted(expected)}, got {sorted(state) if isinstance(state, dict) else type(state).__name__}")
+        arrays = {}
+        for name, shape in expected.items():
+            arr = np.asarray(state[name])
+            if arr.shape != shape or arr.dtype.kind not in "iufb" or (arr.dtype.kind == "f" and not np.all(np.isfinite(arr))):
+                raise InputError(f"state[{name!r}] has shape {arr.shape} and dtype {arr.dtype}; expected finite values of shape {shape}")
+            arrays[name] = arr
+        pad = lambda a, axis: np.concatenate([a, np.repeat(np.take(a, [-1], axis=axis), self._padded - n, axis=axis)], axis=axis)
+        new = core.EnvState(y=pad(arrays["y"].T, 1), steps=pad(arrays["steps"].astype(np.int32), 0), needs_reset=pad(arrays["needs_reset"].astype(bool), 0))
+        self._state = jax.tree.map(lambda value, old: jax.device_put(value.astype(old.dtype), old.sharding), new, self._state)
+        self._key = jax.device_put(arrays["key"].astype(np.asarray(self._key).dtype))
+        self._parameters = arrays["parameters"].astype(float)
+
     def member_heart(self, i: int):
         """Member i's Heart at its current parameters (host-side, for plotting or re-simulation)."""
-        if self._parameters is None:
-            return self.patients[i].heart
-        return self.patients[i].heart.replace(**{k: float(v) for k, v in zip(self.action_names, self._parameters[i])})
+        i = integer("member index i", i, 0, self.num_envs - 1)
+        return self.patients[i].heart.replace(**{k: float(v[i]) for k, v in self.parameters.items()})
 
     def member_state(self, i: int) -> np.ndarray:
         """Member i's LO-heart state (9,) at the end of its last step."""
-        return np.asarray(jax.device_get(self._state.y))[:, i]
+        return self.get_state()["y"][integer("member index i", i, 0, self.num_envs - 1)]
 
     def render(self):
         """``rgb_array``: PV loop and P/V traces of member 0 at its current parameters."""

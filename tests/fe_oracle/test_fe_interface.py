@@ -122,3 +122,25 @@ def test_beat_metrics_locate_valve_events_between_samples():
     assert first["P_lv_peak"] == pytest.approx(6.0)
     with pytest.raises(ValueError, match="passive"):
         beat_metrics(OracleResult(traces, {"case": "passive"}, []))
+
+
+def test_code_version_covers_every_module_a_backend_runs():
+    """Every fe_oracle module the DOLFINx backend imports, directly or not, is hashed into its key."""
+    import ast
+    import pathlib
+
+    root = pathlib.Path(cache.__file__).resolve().parent.parent
+    for backend, files in cache.CODE.items():
+        assert all((root / f).is_file() for f in files), backend
+        todo, seen = [f"fe_oracle/{backend}_backend.py"], set()
+        while todo:
+            path = todo.pop()
+            if path in seen:
+                continue
+            seen.add(path)
+            for node in ast.walk(ast.parse((root / path).read_text())):
+                if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("fe_oracle"):
+                    names = [node.module] if node.module != "fe_oracle" else [f"fe_oracle.{a.name}" for a in node.names]
+                    todo += [n.replace(".", "/") + ".py" for n in names if (root / (n.replace(".", "/") + ".py")).is_file()]
+        assert seen <= set(files), sorted(seen - set(files))
+    assert "fe_oracle/api.py" not in cache.CODE["dolfinx"] and cache.code_version("dolfinx") != cache.code_version("multielement")

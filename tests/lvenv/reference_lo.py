@@ -16,7 +16,7 @@ from scipy import integrate, optimize
 def _pars(heart, v0):
     lo, c, w = heart.lo, heart.cell, heart.circulation
     return dict(
-        v0=v0, mu1=lo.mu1, mu2=lo.mu2, gam=lo.gamma, alpha=lo.alpha, beta=lo.beta, a=lo.a, b=lo.b, c=lo.c,
+        v0=v0, mu1=lo.mu1, mu2=lo.mu2, gam=lo.gamma, alpha=lo.alpha, beta=lo.beta, a=lo.a, b=lo.b, c=lo.c, delay=lo.delay,
         Sa=c.Sa, fv=c.vmax_factor, n0=c.n0, nTm=c.nA, tau1=c.tau1, tau2=c.tau2, cdia=c.Cdia, cmax=c.Cmax,
         Tref=c.Tref, ca50ref=c.Ca50ref, beta1=c.beta1, ntrpn=c.nTRPN, ktrpn=c.kTRPN, trpn50=c.TRPN50, ku=c.ku,
         rw=c.rw, rs=c.rs, gs=c.gamma_s, gw=c.gamma_w, phi=c.phi, aeff=c.Aeff, kuw=c.kuw * c.vmax_factor, kws=c.kws * c.vmax_factor,
@@ -25,6 +25,9 @@ def _pars(heart, v0):
 
 
 def calcium(t, q):
+    t = t - q["delay"]  # the LO activation delay: the transient starts d after the beat's onset
+    if t < 0.0:
+        return q["cdia"]
     tp = q["tau1"] * q["tau2"] / (q["tau2"] - q["tau1"]) * math.log(q["tau2"] / q["tau1"])
     norm = math.exp(-tp / q["tau2"]) - math.exp(-tp / q["tau1"])
     return q["cdia"] + (q["cmax"] - q["cdia"]) * (math.exp(-t / q["tau2"]) - math.exp(-t / q["tau1"])) / norm

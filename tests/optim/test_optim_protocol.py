@@ -53,7 +53,7 @@ def test_resume_after_interrupt_reaches_the_same_result(method: str, tmp_path: P
     reference = optim.run(make(method), sphere, budget)
     assert reference.evaluations > 0
 
-    ckpt = tmp_path / "fit.pkl"
+    ckpt = tmp_path / "fit.npz"
     for stop_at in (1, 2, reference.batches // 2):
         ckpt.unlink(missing_ok=True)
 
@@ -65,7 +65,7 @@ def test_resume_after_interrupt_reaches_the_same_result(method: str, tmp_path: P
             optim.run(make(method), sphere, budget, callback=callback, checkpoint=ckpt)
         resumed = optim.run(make(method), sphere, budget, checkpoint=ckpt)
         assert_same_result(reference, resumed)
-    assert [p.name for p in tmp_path.iterdir()] == ["fit.pkl"]  # atomic write left no temp file
+    assert [p.name for p in tmp_path.iterdir()] == ["fit.npz"]  # atomic write left no temp file
 
 
 @pytest.mark.parametrize("method", sorted(CONFIGS))
@@ -80,14 +80,39 @@ def test_resume_after_a_crash_inside_the_objective(method: str, tmp_path: Path) 
             raise Interrupt
         return sphere(x)
 
-    ckpt = tmp_path / "fit.pkl"
+    ckpt = tmp_path / "fit.npz"
     with pytest.raises(Interrupt):
         optim.run(make(method), flaky, budget, checkpoint=ckpt)
     assert_same_result(reference, optim.run(make(method), flaky, budget, checkpoint=ckpt))
 
 
+class _Payload:
+    """A pickle that would create a file when unpickled."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbage", "empty", "pickle"])
+def test_a_damaged_or_foreign_checkpoint_is_refused_with_its_path_and_runs_no_code(damage: str, tmp_path: Path) -> None:
+    import pickle
+
+    ckpt = tmp_path / "fit.npz"
+    optim.run(make("mads"), sphere, 9, checkpoint=ckpt)
+    marker = tmp_path / "pwned"
+    data = ckpt.read_bytes()
+    ckpt.write_bytes({"truncated": data[: len(data) // 2], "garbage": b"not a checkpoint" * 10, "empty": b"",
+                      "pickle": pickle.dumps(_Payload(marker))}[damage])
+    with pytest.raises(optim.CheckpointError, match=r"fit\.npz.*(delete it|move it away)"):
+        optim.run(make("mads"), sphere, 9, checkpoint=ckpt)
+    assert not marker.exists(), "loading a checkpoint must never unpickle"
+
+
 def test_checkpoint_of_another_configuration_is_refused(tmp_path: Path) -> None:
-    ckpt = tmp_path / "fit.pkl"
+    ckpt = tmp_path / "fit.npz"
     optim.run(make("mads", seed=1), sphere, 9, checkpoint=ckpt)
     with pytest.raises(ValueError, match="different optimiser configuration"):
         optim.run(make("mads", seed=2), sphere, 9, checkpoint=ckpt)
@@ -219,9 +244,9 @@ def test_progress_bar_can_be_forced(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_checkpoint_write_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    ckpt = tmp_path / "c.pkl"
+    ckpt = tmp_path / "c.npz"
     opt = make("cma")
-    optim.save_checkpoint(ckpt, opt)
+    optim.save_checkpoint(ckpt, opt, 12)
     before = ckpt.read_bytes()
 
     def broken_replace(src: str, dst: str) -> None:
@@ -229,5 +254,5 @@ def test_checkpoint_write_is_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPa
 
     monkeypatch.setattr(os, "replace", broken_replace)
     with pytest.raises(OSError):
-        optim.save_checkpoint(ckpt, opt)
+        optim.save_checkpoint(ckpt, opt, 12)
     assert ckpt.read_bytes() == before and len(list(tmp_path.iterdir())) == 1

@@ -1,0 +1,75 @@
+"""Safe, atomic files of named arrays plus JSON metadata (``.npz``; never pickle).
+
+One format for everything lvenv and its packages write to resume from or to cache: optimiser
+and environment checkpoints (:mod:`optim.protocol`, :mod:`optim.minimize`) and FE oracle
+results (:mod:`fe_oracle.cache`). A file is a NumPy ``.npz`` archive of numeric, boolean or
+fixed-width string arrays and one ``__meta__`` entry holding JSON text; it is read with
+``allow_pickle=False``, so loading a file from elsewhere cannot run code.
+
+Writes go to a temporary file in the same folder, are flushed to disk and then
+``os.replace``-d into place: a killed process leaves the old file or the new one, never half of
+one (at most a stray ``.tmp`` file, which readers ignore).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import tempfile
+import zipfile
+from typing import Any
+
+import numpy as np
+
+from lvenv.validation import InputError
+
+__all__ = ["ArchiveError", "save", "load", "META"]
+
+META = "__meta__"
+
+
+class ArchiveError(InputError):
+    """A file that cannot be read back: missing, damaged, truncated or not ours. Names the path."""
+
+
+def save(path: str | os.PathLike[str], arrays: dict[str, Any], meta: dict[str, Any]) -> pathlib.Path:
+    """Atomically write ``arrays`` (name → array) and ``meta`` (JSON-able) to ``path``."""
+    target = pathlib.Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    payload = {name: np.asarray(value) for name, value in arrays.items()}
+    for name, value in payload.items():
+        if value.dtype.kind not in "biufU":
+            raise TypeError(f"archive entry {name!r} has dtype {value.dtype}; only numbers, booleans and strings are stored")
+    payload[META] = np.array(json.dumps(meta, allow_nan=True))
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **payload)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        pathlib.Path(tmp).unlink(missing_ok=True)
+        raise
+    return target
+
+
+def load(path: str | os.PathLike[str], what: str = "file") -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """``(arrays, meta)`` of an archive; :class:`ArchiveError` (naming ``what`` and the path, and
+    saying what to do) if it is missing, damaged or not an archive of this format."""
+    path = pathlib.Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: np.array(data[name]) for name in data.files if name != META}
+            meta = json.loads(str(data[META]))
+    except FileNotFoundError:
+        raise ArchiveError(f"{what} {str(path)!r} does not exist") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, json.JSONDecodeError) as err:
+        raise ArchiveError(
+            f"{what} {str(path)!r} is damaged or not an lvenv archive ({type(err).__name__}: {err}); "
+            "delete it or move it away to start afresh"
+        ) from None
+    if not isinstance(meta, dict):
+        raise ArchiveError(f"{what} {str(path)!r} has no metadata object; delete it or move it away to start afresh")
+    return arrays, meta

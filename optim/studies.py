@@ -1,0 +1,94 @@
+"""The paper's two validation studies of congruency training (DESIGN §3, Di Achille et al. 2020).
+
+* :func:`generalisation` (their Fig. 7): the trained LO heart, maps frozen, against the oracle
+  when one cell or circulation parameter at a time leaves its training value: Vmax factor
+  (0.25–4), n0 (0.5–0.9), nA (1–10), τ2 (×1.1–2.0) and R1 (up to 0.1 kPa·s/ml), one beat under
+  training condition ②. Reported per scenario: C (DESIGN §3, one run) and the largest pointwise
+  error of P and V, each relative to the oracle trace's maximum.
+* :func:`multielement_table` (their Table 4): a single-element LO heart trained
+  (:func:`optim.congruency.train`) to each 256-element model (parallel and series,
+  :mod:`lvenv.multielement`) along four sweeps of ten values: Vmax factor 0.25–4, n0 0.5–0.9,
+  nA 1–10, τ2 ×1.1–2.0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+
+import fe_oracle
+from lvenv import presets
+from lvenv.params import CellParams, Heart
+from lvenv.simulation import simulate
+from optim.congruency import congruency, train
+
+__all__ = ["UNSEEN", "SWEEPS", "scenario", "generalisation", "multielement_table"]
+
+#: The ends of the unseen scenarios: parameter changes from the training values (τ2 as a factor).
+UNSEEN: dict[str, dict[str, float]] = {
+    "vmax_x0.25": {"vmax_factor": 0.25}, "vmax_x4": {"vmax_factor": 4.0},
+    "n0_0.5": {"n0": 0.5}, "n0_0.9": {"n0": 0.9},
+    "nA_1": {"nA": 1.0}, "nA_10": {"nA": 10.0},
+    "tau2_x2": {"tau2_factor": 2.0}, "R1_0.1": {"R1": 0.1},
+}
+
+#: Table 4's sweeps, ten values each (τ2 as a factor of the training value).
+SWEEPS: dict[str, np.ndarray] = {
+    "vmax_factor": np.geomspace(0.25, 4.0, 10),
+    "n0": np.linspace(0.5, 0.9, 10),
+    "nA": np.linspace(1.0, 10.0, 10),
+    "tau2_factor": np.linspace(1.1, 2.0, 10),
+}
+
+
+def scenario(heart: Heart, change: Mapping[str, float]) -> Heart:
+    """``heart`` under training condition ② with ``change`` applied (``tau2_factor`` scales τ2)."""
+    change = dict(change)
+    if "tau2_factor" in change:
+        change["tau2"] = change.pop("tau2_factor") * float(heart.cell.tau2)
+    return presets.training_condition(2, heart).replace(**change)
+
+
+def _errors(oracle: fe_oracle.OracleResult, lo) -> dict[str, float]:
+    tr = oracle.traces
+    c = float(np.sqrt(congruency(tr, lo.traces.t, lo.traces.V, lo.traces.P_lv)[0]))
+    v = np.interp(tr["t"], lo.traces.t, lo.traces.V)
+    p = np.interp(tr["t"], lo.traces.t, lo.traces.P_lv)
+    return {"C": c, "max_rel_error_V": float(np.max(np.abs(v - tr["V"])) / np.max(np.abs(tr["V"]))),
+            "max_rel_error_P": float(np.max(np.abs(p - tr["P_lv"])) / np.max(np.abs(tr["P_lv"])))}
+
+
+def generalisation(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
+                   steps_per_beat: int = 1000, progress: bool | None = None, **oracle_options: Any) -> list[dict[str, Any]]:
+    """One row per scenario: its name, the change, C, the pointwise errors, the oracle's cache key,
+    and the traces of both (for figures). The LO beats run as one batch."""
+    hearts = {name: scenario(heart, change) for name, change in scenarios.items()}
+    lo = simulate(list(hearts.values()), beats=1, steps_per_beat=steps_per_beat)
+    rows = []
+    for i, (name, h) in enumerate(hearts.items()):
+        oracle = fe_oracle.run(h.geometry, h.circulation, backend, cell=h.cell, progress=progress, **oracle_options)
+        rows.append({"scenario": name, "change": dict(scenarios[name]), **_errors(oracle, lo[i]), "lo_status": str(lo.status[i]),
+                     "oracle_key": oracle.metadata["key"], "oracle": oracle.traces, "lo": lo[i].traces})
+    return rows
+
+
+def multielement_table(geometry=presets.N_UNLOADED, arrangements: Iterable[str] = ("parallel", "series"),
+                       sweeps: Mapping[str, Iterable[float]] = SWEEPS, *, budget: int = 480, progress: bool | None = None,
+                       **oracle_options: Any) -> list[dict[str, Any]]:
+    """One row per (arrangement, sweep, value): C of a single-element LO heart trained to the
+    256-element model with that cell (Table 3 maps for the 256 elements; the delay trained only
+    when C ≥ 1 % without it)."""
+    rows = []
+    base = CellParams()
+    for kind in arrangements:
+        for name, values in sweeps.items():
+            for value in values:
+                change = {"tau2": float(value) * base.tau2} if name == "tau2_factor" else {name: float(value)}
+                cell = dataclasses.replace(base, **change)
+                trained = train(geometry, "multielement", cell=cell, arrangement=kind, budget=budget, progress=progress, **oracle_options)
+                rows.append({"arrangement": kind, "sweep": name, "value": float(value), **trained.congruency,
+                             "delay": trained.lo.delay, "C_without_delay": None if trained.congruency_without_delay is None else trained.congruency_without_delay["C"]})
+    return rows

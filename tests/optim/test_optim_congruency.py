@@ -1,0 +1,83 @@
+"""Congruency training: the C² of DESIGN §3, passive and active fits that recover known LO
+parameters from data the LO heart generated (the multi-element backend with one element), and
+the trained record."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import lvenv
+from lvenv import presets
+from lvenv.params import LOParams
+from lvenv.trained import TrainedLO
+from optim import congruency as cg
+
+#: Known maps: Table 3 with μ1 at the one-element value of the parallel arrangement (the midpoint
+#: of its μ1 range), another μ2 and γ, and a delay.
+TRUTH = dataclasses.replace(presets.N_LO, mu1=0.0945, mu2=0.2, gamma=2.5, delay=0.03)
+
+
+def lo_data(tmp_path, truth=TRUTH):
+    return dict(arrangement="parallel", n_elements=1, lo=truth, cache_dir=tmp_path)
+
+
+def test_congruency_is_the_relative_l2_error_of_design_section_3():
+    t = np.linspace(0.0, 1.0, 201)
+    fe = {"t": t, "V": 50.0 + 10.0 * np.sin(2 * np.pi * t), "P_lv": 5.0 + 4.0 * np.cos(2 * np.pi * t)}
+    t_lo = np.linspace(0.0, 1.0, 1001)
+    v = 50.0 + 10.0 * np.sin(2 * np.pi * t_lo)
+    p = 5.0 + 4.0 * np.cos(2 * np.pi * t_lo)
+    c2 = cg.congruency(fe, t_lo, np.stack([v, 1.01 * v, v]), np.stack([p, p, 0.98 * p]))
+    np.testing.assert_allclose(c2, [0.0, 1e-4, 4e-4], atol=2e-6)
+
+
+def test_passive_fit_recovers_known_parameters_from_a_synthetic_curve(tmp_path):
+    truth = dataclasses.replace(TRUTH, gamma=1.0)
+    data = cg.oracle_data(presets.N_UNLOADED, "multielement", **lo_data(tmp_path, truth))
+    assert data.passive.traces["P_lv"].min() < 0.0 < data.passive.traces["P_lv"].max()
+    fitted, rmse = cg.fit_passive(data, LOParams())
+    for name in cg.PASSIVE_NAMES:
+        assert getattr(fitted, name) == pytest.approx(getattr(truth, name), rel=1e-6), name
+    assert rmse < 1e-8 and fitted.gamma == 1.0
+
+
+def test_training_recovers_known_lo_parameters_and_writes_a_record(tmp_path):
+    trained = cg.train(presets.N_UNLOADED, "multielement", start=LOParams(mu1=0.15, mu2=0.15, gamma=1.5), delay="always",
+                       budget=720, progress=False, **lo_data(tmp_path))
+    lo = trained.lo
+    # γ only scales β in compression: the passive fit (γ = 1) takes the product into β
+    assert lo.beta * lo.gamma == pytest.approx(TRUTH.beta * TRUTH.gamma, rel=0.01)
+    for name in ("mu1", "mu2", "delay", "alpha", "a", "b", "c"):
+        assert getattr(lo, name) == pytest.approx(getattr(TRUTH, name), rel=0.01), name
+    assert trained.congruency["C"] < 0.01 and set(trained.congruency) == {"1", "2", "3", "C"}
+    prov = trained.provenance
+    assert prov["backend"] == "multielement" and set(prov["oracle_keys"]) == {"passive", "1", "2", "3"}
+    assert prov["code_version"]["oracle"] and prov["dt_s"] == 0.001
+    path = tmp_path / "trained.json"
+    trained.to_json(path)
+    back = TrainedLO.from_json(path)
+    assert back == trained
+    res = lvenv.simulate(presets.training_condition(2, back.heart()), beats=1)
+    assert res.status == "ok"
+
+
+def test_a_damaged_record_is_named(tmp_path):
+    path = tmp_path / "t.json"
+    path.write_text("{}")
+    with pytest.raises(ValueError, match="not a trained-LO record"):
+        TrainedLO.from_json(path)
+    with pytest.raises(ValueError, match="cannot read the trained-LO record"):
+        TrainedLO.from_json(tmp_path / "missing.json")
+
+
+def test_fidelity_of_the_lo_heart_against_itself_is_within_every_tolerance(tmp_path):
+    heart = presets.normal().replace(lo=TRUTH)
+    report = cg.check_fidelity(heart, "multielement", beats=3, **lo_data(tmp_path))
+    assert report.ok and report.C < 0.02, report  # the oracle starts at its own passive equilibrium: a small transient remains
+    assert set(report.rows) == set(cg.FIDELITY_TOLERANCE) and report.lo_status == "ok"
+    lo_ef, fe_ef, diff = report.rows["EF"]
+    assert diff == pytest.approx(fe_ef - lo_ef) and abs(diff) < 0.005
+    # a heart the oracle does not share (another μ2 in the oracle) is caught
+    other = cg.check_fidelity(heart, "multielement", beats=3, **lo_data(tmp_path, dataclasses.replace(TRUTH, mu2=0.15)))
+    assert not other.ok and other.C > 2 * report.C, (other.C, report.C)
