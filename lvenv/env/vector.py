@@ -49,8 +49,19 @@ def _counted(fn):
     return traced
 
 
-_reset_jit = jax.jit(_counted(core.reset), static_argnames="config")
-_step_jit = jax.jit(_counted(core.step), static_argnames="config")
+def _with_key(fn):
+    """``fn(key, ...)`` → ``(next key, fn(subkey, ...))``: the shell's key advances inside the one call."""
+
+    @functools.wraps(fn)
+    def keyed(key, *args, config):
+        key, sub = jax.random.split(key)
+        return key, fn(sub, *args, config=config)
+
+    return keyed
+
+
+_reset_jit = jax.jit(_counted(_with_key(core.reset)), static_argnames="config")
+_step_jit = jax.jit(_counted(_with_key(core.step)), static_argnames="config")
 
 
 class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
@@ -159,9 +170,8 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         super().reset(seed=seed)
         if seed is None:
             seed = int(self.np_random.integers(2**31 - 1))
-        key, sub = jax.random.split(jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1)))
-        state, obs, info = _reset_jit(sub, self._params, config=self.config)
-        self._state, self._key = state, key
+        self._key, (state, obs, info) = _reset_jit(jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1)), self._params, config=self.config)
+        self._state = state
         obs, info = jax.device_get((obs, info))
         self._parameters = np.asarray(info["parameters"])[: self.num_envs]
         return np.asarray(obs)[: self.num_envs], self._info(info)
@@ -177,8 +187,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         actions, _ = shard_members(self._check_actions(actions), self.num_envs, batch_axis_of=lambda leaf: 0)
-        self._key, sub = jax.random.split(self._key)
-        state, obs, reward, terminated, truncated, info = _step_jit(sub, self._state, actions, self._params, config=self.config)
+        self._key, (state, obs, reward, terminated, truncated, info) = _step_jit(self._key, self._state, actions, self._params, config=self.config)
         self._state = state
         obs, reward, terminated, truncated, info = jax.device_get((obs, reward, terminated, truncated, info))
         n = self.num_envs

@@ -70,3 +70,18 @@ def test_an_internal_error_exits_3_with_the_traceback(monkeypatch, capsys):
     assert cli.main(["simulate"]) == cli.EXIT_INTERNAL
     err = capsys.readouterr().err
     assert "internal error" in err and "RuntimeError: boom" in err and "Traceback" in err
+
+
+def test_long_commands_show_progress_on_a_terminal(monkeypatch, capsys):
+    import io
+
+    from rich.console import Console
+
+    screen = io.StringIO()
+    monkeypatch.setattr(cli, "_err", Console(file=screen, force_terminal=True, width=120))
+    assert cli.main(["simulate", "--beats", "1", "--json"]) == cli.EXIT_OK
+    assert "simulating" in screen.getvalue()
+    capsys.readouterr()
+    monkeypatch.setattr(cli, "_err", Console(file=io.StringIO(), force_terminal=False))
+    assert cli.main(["simulate", "--beats", "1", "--json"]) == cli.EXIT_OK
+    assert "simulating" not in capsys.readouterr().err  # nothing but the result when piped
