@@ -104,29 +104,33 @@ def run(
     }
     if not passive:
         inputs.update(dt=float(dt), beats=int(beats), duration=duration, cell=cell)
+
+    def compute():
+        be = load_backend()
+        show = bool(getattr(sys.stderr, "isatty", lambda: False)()) if progress is None else bool(progress)
+        if passive:
+            return be.run_passive(geometry, material, mesh_size, record.pressures(), max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show)
+        return be.run_beat(geometry, record, cell, material, mesh_size, dt, int(beats), duration=duration, max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show)
+
+    return _cached(inputs, compute, cache_dir, use_cache, mesh_size=float(mesh_size))
+
+
+def _cached(inputs: dict, compute, cache_dir, use_cache: bool, *, mesh_size: float | None) -> OracleResult:
+    """The cached result for ``inputs``, else ``compute()`` → (traces, metadata, log) with the
+    metadata every backend shares added, stored in the cache unless ``use_cache`` is False."""
     directory = cache.default_dir() if cache_dir is None else pathlib.Path(cache_dir)
     k = cache.key(inputs)
     if use_cache and (hit := cache.load(directory, k)) is not None:
         return hit
-    be = load_backend()
-    show = bool(getattr(sys.stderr, "isatty", lambda: False)()) if progress is None else bool(progress)
     t0 = time.perf_counter()
-    if passive:
-        traces, meta, log = be.run_passive(geometry, material, mesh_size, record.pressures(), max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show)
-    else:
-        traces, meta, log = be.run_beat(
-            geometry, record, cell, material, mesh_size, dt, int(beats), duration=duration, max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show
-        )
-    return _finish(traces, meta, log, backend, passive, k, float(mesh_size), t0, dt, beats, directory if use_cache else None)
-
-
-def _finish(traces, meta, log, backend, passive, k, mesh_size, t0, dt, beats, directory) -> OracleResult:
-    """The result with the metadata every backend shares, stored in the cache ``directory`` (None: not)."""
-    meta = dict(meta, backend=backend, case="passive" if passive else "beat", key=k, code_version=cache.code_version(backend), mesh_size_mm=mesh_size, total_s=time.perf_counter() - t0)
+    traces, meta, log = compute()
+    passive = isinstance(inputs["case"], Passive)
+    meta = dict(meta, backend=inputs["backend"], case="passive" if passive else "beat", key=k, code_version=cache.code_version(inputs["backend"]),
+                mesh_size_mm=mesh_size, total_s=time.perf_counter() - t0)
     if not passive:
-        meta.update(dt_s=float(dt), beats=int(beats))
+        meta.update(dt_s=inputs["dt"], beats=inputs["beats"])
     result = OracleResult(traces, meta, log)
-    if directory is not None:
+    if use_cache:
         cache.store(directory, k, result)
     return result
 
@@ -143,13 +147,10 @@ def _run_multielement(geometry, record, cell, arrangement, n_elements, lo, *, dt
     inputs = {"backend": "multielement", "geometry": geometry, "case": record, "arrangement": arr, "lo": lo}
     if not passive:
         inputs.update(dt=float(dt), beats=beats, duration=duration, cell=cell)
-    directory = cache.default_dir() if cache_dir is None else pathlib.Path(cache_dir)
-    k = cache.key(inputs)
-    if use_cache and (hit := cache.load(directory, k)) is not None:
-        return hit
-    t0 = time.perf_counter()
-    if passive:
-        traces, meta, log = be.run_passive(geometry, arr, lo, record.pressures())
-    else:
-        traces, meta, log = be.run_beat(geometry, record, cell, arr, lo, dt, beats, duration=duration)
-    return _finish(traces, meta, log, "multielement", passive, k, None, t0, dt, beats, directory if use_cache else None)
+
+    def compute():
+        if passive:
+            return be.run_passive(geometry, arr, lo, record.pressures())
+        return be.run_beat(geometry, record, cell, arr, lo, dt, beats, duration=duration)
+
+    return _cached(inputs, compute, cache_dir, use_cache, mesh_size=None)

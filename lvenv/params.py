@@ -188,8 +188,12 @@ def validate(heart: Heart) -> None:
     Works on a single Heart or a stacked batch. Also checks the cross-field conditions
     τ1 < τ2, Cdia < Cmax and that Ppass is monotone for x > 0 (b² < 3ac or b ≥ 0).
     """
-    heart = _as_arrays(heart)
-    batch_size(heart)
+    _check(_as_arrays(heart))
+
+
+def _check(heart: Heart) -> int | None:
+    """:func:`validate` of a Heart whose parameters are arrays already; returns its batch size."""
+    size = batch_size(heart)
     for part, cls in _PARTS:
         for f in dataclasses.fields(cls):
             arr, name = getattr(getattr(heart, part), f.name), f.name
@@ -212,6 +216,7 @@ def validate(heart: Heart) -> None:
     if np.any(bad := (b < 0) & (b * b >= 3 * a * c)):
         raise InputError(f"lo.b = {float(np.ravel(b)[np.flatnonzero(bad.ravel())[0]]):g} kPa makes Ppass non-monotone for V > V0 (need b² < 3ac){_member(b, bad)}")
     cavity_volumes(heart)
+    return size
 
 
 def cavity_volumes(heart: Heart) -> np.ndarray:
@@ -277,14 +282,11 @@ def as_batch(params: Heart | Sequence[Heart]) -> tuple[Heart, bool]:
     arrays of shape ``(B,)`` (numbers are broadcast to every member).
     """
     if isinstance(params, Heart):
-        validate(params)
         heart = _as_arrays(params)
-        size = batch_size(heart)
-        if size is None:
-            return stack([params]), True
-        return jax.tree.map(lambda x: np.broadcast_to(x, (size,)).copy(), heart), False
+        size = _check(heart)
+        return jax.tree.map(lambda x: np.broadcast_to(x, (size or 1,)).copy(), heart), size is None
     heart = stack(params)
-    validate(heart)
+    _check(heart)
     return heart, False
 
 

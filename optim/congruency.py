@@ -51,6 +51,7 @@ from fe_oracle import cache as oracle_cache
 from fe_oracle.cases import Passive
 from lvenv import coupling, presets
 from lvenv.geometry import Geometry, cavity_volume
+from lvenv.model import IDX_PAT, IDX_PC
 from lvenv.params import CellParams, Heart, LOParams
 from lvenv.simulation import simulate
 from lvenv.status import is_usable
@@ -325,8 +326,6 @@ def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, st
                    progress: bool | None = None, **oracle_options: Any) -> Fidelity:
     """Run the oracle at ``heart`` (closed loop, from the LO steady state, ``beats`` beats) and
     compare its last beat with the LO steady state (module docstring)."""
-    from lvenv.model import IDX_PAT, IDX_PC
-
     beats = integer("beats", beats, 1)
     lo_run = simulate(heart, steps_per_beat=steps_per_beat)
     if not is_usable(lo_run.status):
