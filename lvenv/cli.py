@@ -1,4 +1,4 @@
-"""Command line: ``lvenv presets | simulate | reach`` (``lvenv --help``), on Click with rich output.
+"""Command line: ``lvenv presets | simulate | reach | fit | cohort | train | oracle | bench`` (``lvenv --help``), on Click with rich output.
 
 Exit codes (also in ``lvenv --help``):
 
@@ -15,12 +15,20 @@ Tables go to a terminal with units in every header and ``—`` for the metrics o
 member; ``--json`` prints machine-readable output (internal units; a failed member's metrics
 are ``null``). Anything longer than a moment shows progress on stderr when it is a terminal.
 
-The CLI is the application layer: it may import :mod:`optim` (``reach``); the rest of
-:mod:`lvenv` never does.
+``cohort`` exits 0 when every good row was fitted with a usable status; bad rows are reported
+(line and reason, also under ``bad_rows`` in ``--json``) and skipped without changing the code.
+
+Every command turns on JAX's persistent compilation cache (:mod:`lvenv.jitcache`, default
+``~/.cache/lvenv/jax``) unless given ``lvenv --no-jit-cache``, so a second process does not
+recompile the model.
+
+The CLI is the application layer: it may import :mod:`optim` (``reach``, ``fit``, ``cohort``);
+the rest of :mod:`lvenv` never does.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
@@ -34,13 +42,13 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from lvenv import presets
+from lvenv import jitcache, plots, presets
 from lvenv.geometry import cavity_volume
-from lvenv.identification import ACTION_BOUNDS
+from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS
 from lvenv.metrics import METRIC_NAMES, display, header
 from lvenv.params import field_names
 from lvenv.patients import BUILTIN, Patient, builtin
-from lvenv.simulation import simulate
+from lvenv.simulation import Traces, simulate
 from lvenv.status import is_usable
 from lvenv.validation import InputError
 
@@ -121,9 +129,19 @@ def _parse_settings(items: Sequence[str]) -> dict[str, float]:
     return out
 
 
+def _plot_suffix(ctx, param, value):
+    """A --plot path must end in .png or .pdf (checked before any long computation)."""
+    if value is not None and not value.lower().endswith(plots.SUFFIXES):
+        raise click.BadParameter(f"{value!r} must end in one of {plots.SUFFIXES}")
+    return value
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]}, epilog=_EPILOG)
-def app() -> None:
-    """Low-order LV heart (Di Achille et al. 2020) in JAX: simulate presets and patients."""
+@click.option("--no-jit-cache", is_flag=True, help="do not use JAX's persistent compilation cache ($LVENV_JIT_CACHE, default ~/.cache/lvenv/jax)")
+def app(no_jit_cache: bool) -> None:
+    """Low-order LV heart (Di Achille et al. 2020) in JAX: simulate, fit patients and cohorts."""
+    if not no_jit_cache:
+        jitcache.enable()
 
 
 @app.command("presets", epilog=_EPILOG)
@@ -167,8 +185,9 @@ def presets_command(max_beats: int, as_json: bool) -> int:
 @click.option("--beats", type=click.IntRange(min=1), default=None, help="fixed number of beats (default: to steady state)")
 @click.option("--max-beats", type=click.IntRange(min=1), default=200, show_default=True, help="beats to reach steady state, at most")
 @click.option("--steps-per-beat", type=click.IntRange(min=10), default=1000, show_default=True, help="ROS2 steps per cardiac cycle")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the PV loop and traces of the last beat (.png or .pdf)")
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of a table")
-def simulate_command(preset, patient_file, condition, settings, beats, max_beats, steps_per_beat, as_json) -> int:
+def simulate_command(preset, patient_file, condition, settings, beats, max_beats, steps_per_beat, plot_path, as_json) -> int:
     """Simulate one heart with parameters changed by --set NAME=VALUE."""
     if preset is not None and patient_file is not None:
         raise click.UsageError("give --preset or --patient, not both")
@@ -178,7 +197,9 @@ def simulate_command(preset, patient_file, condition, settings, beats, max_beats
         heart = presets.training_condition(condition, heart)
     heart = heart.replace(**_parse_settings(settings))
     with _working("simulating"):
-        res = simulate(heart, beats=beats, max_beats=max_beats, steps_per_beat=steps_per_beat, traces=False)
+        res = simulate(heart, beats=beats, max_beats=max_beats, steps_per_beat=steps_per_beat, traces=plot_path is not None)
+    if plot_path is not None and is_usable(res.status):
+        plots.beat_figure(res.traces, plot_path, f"{name}: EF {100 * res.metrics['EF']:.0f} %")
     if as_json:
         _print_json({"metrics": res.metrics, "status": res.status, "converged": bool(res.converged), "beats": int(res.beats)})
     else:
@@ -219,6 +240,258 @@ def reach_command(preset: str, seed: int, budget: int, as_json: bool) -> int:
     return EXIT_OK if ok else EXIT_FAILED
 
 
+def _patient_arg(text: str) -> Patient:
+    """A built-in patient name or the path of a patient JSON record."""
+    return builtin(text) if text in BUILTIN else Patient.from_json(text)
+
+
+def _parameter_table(parameters: dict[str, float]) -> Table:
+    table = Table(title_justify="left")
+    for col in ("parameter", "value", "units", "bounds"):
+        table.add_column(col)
+    for pname, value in parameters.items():
+        b = ACTION_BOUNDS[pname]
+        table.add_row(pname, f"{value:.4g}", b.units, f"[{b.lo:g}, {b.hi:g}]")
+    return table
+
+
+@app.command("fit", epilog=_EPILOG)
+@click.argument("patient")
+@click.option("--method", type=click.Choice(("mads", "cma", "kriging")), default="mads", show_default=True)
+@click.option("--budget", type=click.IntRange(min=16), default=480, show_default=True, help="steady-state simulations, at most")
+@click.option("--num-envs", type=click.IntRange(min=1), default=16, show_default=True, help="members of the vector env (points per round)")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--steps-per-beat", type=click.IntRange(min=10), default=500, show_default=True, help="ROS2 steps per cardiac cycle")
+@click.option("--identifiability", is_flag=True, help="also report the local sensitivity at the fit: singular values and null directions")
+@click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
+@click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
+@click.option("--convergence", "convergence_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
+              help="write the best mismatch against evaluations (.png or .pdf)")
+@click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
+def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identifiability, fidelity, fidelity_mesh, plot_path, convergence_path, as_json) -> int:
+    """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets."""
+    from optim.fit import DEFAULT_OPTIONS, make_env, null_directions, warm_up
+    from optim.minimize import minimize
+
+    record = _patient_arg(patient)
+    venv = make_env(record, num_envs, steps_per_beat)
+    with _working("compiling the model"):
+        compile_time = warm_up(venv)
+    res = minimize(venv, method, budget=budget, seed=seed, progress=_err.is_terminal, **DEFAULT_OPTIONS.get(method, {}))
+    venv.close()
+    ok = is_usable(res.status) and math.isfinite(res.mismatch)
+    payload = {"patient": record.name, "method": method, "parameters": res.parameters, "targets": res.targets,
+               "observation": res.observation, "mismatch": res.mismatch, "mismatch_per_target": res.mismatch_per_target,
+               "status": res.status, "evaluations": res.evaluations, "wall_time_s": res.wall_time, "compile_time_s": compile_time}
+    heart = record.heart.replace(**res.parameters) if ok else None
+    if convergence_path is not None:
+        plots.convergence_figure({method: res.history.best_mismatch_so_far()}, convergence_path, f"{record.name}: {method}, {num_envs} envs")
+    if plot_path is not None and ok:
+        beat = simulate(heart, steps_per_beat=steps_per_beat)
+        plots.fit_figure(beat.traces, beat.metrics, res.targets, plot_path, f"{record.name}: {method} fit, mismatch {100 * res.mismatch:.2f} %")
+    if identifiability and ok:
+        names = list(DEFAULT_ACTION_PARAMS)
+        sigmas, null = null_directions(record.heart, np.array([[res.parameters[n] for n in names]]), list(record.targets), steps_per_beat)
+        payload["identifiability"] = {"singular_values": sigmas[0],
+                                      "null_directions": [dict(zip(names, v)) for v in null[0].T]}
+    if fidelity and ok:
+        try:
+            from optim.congruency import check_fidelity
+            payload["fidelity"] = check_fidelity(heart, mesh_size=fidelity_mesh, progress=_err.is_terminal).to_dict()
+        except ImportError as err:
+            raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
+    if as_json:
+        _print_json(payload)
+        return EXIT_OK if ok else EXIT_FAILED
+    out = _out()
+    out.print(f"{record.name}: {method}, {res.evaluations} evaluations in {res.wall_time:.1f} s "
+              f"(+ {compile_time:.1f} s compiling); mismatch {100 * res.mismatch:.2f} %, status {res.status}")
+    out.print(_parameter_table(res.parameters))
+    targets = Table(title_justify="left")
+    for col in ("target", "value", "fit", "error (%)"):
+        targets.add_column(col, justify="right")
+    for key, target in res.targets.items():
+        targets.add_row(header(key), display(key, target), display(key, res.observation[key]), f"{100 * res.relative_error[key]:+.2f}")
+    out.print(targets)
+    if "identifiability" in payload:
+        ident = payload["identifiability"]
+        out.print("singular values of d ln(targets) / d(unit-cube parameters): " + ", ".join(f"{v:.3g}" for v in ident["singular_values"]))
+        for j, direction in enumerate(ident["null_directions"]):
+            out.print(f"null direction {j + 1} (targets unchanged to first order): " + ", ".join(f"{n} {v:+.2f}" for n, v in direction.items()))
+    if "fidelity" in payload:
+        fid = payload["fidelity"]
+        out.print(f"fidelity against the 3-D oracle (h = {fidelity_mesh:g} mm): C {100 * fid['C']:.2f} %, {'within' if fid['ok'] else 'OUTSIDE'} tolerance")
+        for name, (lo, fe, diff) in fid["rows"].items():
+            out.print(f"  {header(name):18s} LO {display(name, lo):>8s}  FE {display(name, fe):>8s}  {'ok' if fid['within'][name] else 'OUT'}")
+    return EXIT_OK if ok else EXIT_FAILED
+
+
+@app.command("cohort", epilog=_EPILOG)
+@click.argument("reports", type=click.Path(exists=True, dir_okay=False))
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="output CSV (resumed if it exists)")
+@click.option("--budget", type=click.IntRange(min=8), default=None, help="evaluations per patient, at most [default: optim.cohort.CohortOptions]")
+@click.option("--candidates", type=click.IntRange(min=2), default=None, help="env members per patient (CMA-ES population)")
+@click.option("--slots", type=click.IntRange(min=1), default=None, help="patients fitted at once per process")
+@click.option("--stop-mismatch", type=click.FloatRange(0.0, 1.0), default=None, help="a patient's search stops below this mismatch (fraction)")
+@click.option("--seed", type=click.IntRange(min=0), default=None)
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Dask LocalCluster processes (1: this process only)")
+@click.option("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (e.g. tcp://host:8786) to split the cohort over")
+@click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
+def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, as_json) -> int:
+    """Fit every echo report of the CSV REPORTS (columns: id, EF_pct, ET_ms, IVRT_ms, SBP_mmHg,
+    DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out."""
+    from optim.cohort import CohortOptions, read_reports, run_cohort
+
+    given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed}
+    options = CohortOptions(**{k: v for k, v in given.items() if v is not None})
+    for bad in read_reports(reports).bad:
+        _err.print(f"{reports}: line {bad.line}{f' (id {bad.id})' if bad.id else ''}: {bad.reason}; skipped", markup=False, soft_wrap=True)
+    bar = None
+    if _err.is_terminal:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        bar = Progress(TextColumn("fitting"), BarColumn(), MofNCompleteColumn(), TextColumn("patients"), TimeElapsedColumn(),
+                       TimeRemainingColumn(), TextColumn("{task.fields[last]}"), console=_err)
+        task = bar.add_task("cohort", total=None, last="")
+
+    def progress(done: int, total: int, result) -> None:
+        if bar is not None:
+            last = "" if result is None else f"last {result['id']}: {100 * result['mismatch']:.2f} % ({result['status']})"
+            bar.update(task, completed=done, total=total, last=last)
+
+    if bar is not None:
+        bar.start()
+    try:
+        summary = run_cohort(reports, out_path, options, workers=workers, scheduler=scheduler, progress=progress)
+    finally:
+        if bar is not None:
+            bar.stop()
+    failed = sum(n for status, n in summary["status"].items() if not is_usable(status))
+    if as_json:
+        _print_json(summary)
+        return EXIT_FAILED if failed else EXIT_OK
+    m = summary["mismatch"]
+    table = Table(title=f"Cohort {reports} → {out_path}", title_justify="left")
+    for col in ("patients fitted", "resumed", "bad rows", "status", "median mismatch (%)", "95th pct (%)", "max (%)", "wall time (s)"):
+        table.add_column(col, justify="right")
+    pct = lambda key: f"{100 * m[key]:.2f}" if key in m and math.isfinite(m[key]) else "—"
+    table.add_row(str(summary["fitted"]), str(summary["resumed"]), str(len(summary["bad_rows"])),
+                  ", ".join(f"{k} {v}" for k, v in summary["status"].items()), pct("median"), pct("p95"), pct("max"), f"{summary['wall_time_s']:.1f}")
+    _out().print(table)
+    return EXIT_FAILED if failed else EXIT_OK
+
+
+@app.command("train", epilog=_EPILOG)
+@click.argument("heart", type=click.Choice(BUILTIN))
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="the trained record (JSON; lvenv.trained.TrainedLO)")
+@click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default="dolfinx", show_default=True, help="the oracle to train against")
+@click.option("--arrangement", type=click.Choice(("parallel", "series")), default=None, help="multi-element arrangement (backend multielement)")
+@click.option("--mesh-size", type=click.FloatRange(min=1.0), default=None, help="FE mesh size h (mm; backend dolfinx) [default: the oracle's, 6]")
+@click.option("--budget", type=click.IntRange(min=16), default=960, show_default=True, help="MADS evaluations per active fit")
+@click.option("--delay", type=click.Choice(("auto", "never", "always")), default="auto", show_default=True, help="train the activation delay")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="print the trained record as JSON")
+def train_command(heart, out_path, backend, arrangement, mesh_size, budget, delay, seed, as_json) -> int:
+    """Congruency-train the LO maps of the built-in HEART's geometry against an oracle (optim.congruency.train)."""
+    from optim.congruency import train
+
+    oracle = {k: v for k, v in {"arrangement": arrangement, "mesh_size": mesh_size}.items() if v is not None}
+    t0 = time.perf_counter()
+    trained = train(builtin(heart).heart.geometry, backend, budget=budget, delay=delay, seed=seed, progress=_err.is_terminal, **oracle)
+    trained.to_json(out_path)
+    c = trained.congruency.get("C", math.nan)
+    if as_json:
+        click.echo(trained.to_json())
+    else:
+        table = Table(title=f"{heart} trained against {backend}: C = {100 * c:.2f} % ({time.perf_counter() - t0:.0f} s) → {out_path}", title_justify="left")
+        for col in ("run", "C (%)", "C without delay (%)"):
+            table.add_column(col, justify="right")
+        without = trained.congruency_without_delay or {}
+        for run, value in trained.congruency.items():
+            table.add_row(str(run), f"{100 * value:.2f}", f"{100 * without[run]:.2f}" if run in without else "—")
+        _out().print(table)
+        _out().print(", ".join(f"{k} {v:.4g}" for k, v in dataclasses.asdict(trained.lo).items()))
+    return EXIT_OK if math.isfinite(c) else EXIT_FAILED
+
+
+@app.command("oracle", epilog=_EPILOG)
+@click.argument("heart", type=click.Choice(BUILTIN))
+@click.option("--case", type=click.Choice(("passive", "1", "2", "3", "closed")), default="2", show_default=True,
+              help="passive inflation, Table 2 condition 1–3 (one beat), or the preset's closed loop")
+@click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default="dolfinx", show_default=True)
+@click.option("--mesh-size", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm; dolfinx)")
+@click.option("--beats", type=click.IntRange(min=1), default=1, show_default=True, help="beats of the closed loop")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
+              help="write FE (solid) against LO (dashed) traces (.png or .pdf; beat cases)")
+@click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of a table")
+def oracle_command(heart, case, backend, mesh_size, beats, plot_path, as_json) -> int:
+    """Run one FE oracle case on a built-in HEART (cached) and compare its beat with the LO heart's."""
+    import fe_oracle
+
+    lo_heart = builtin(heart).heart
+    options = {"mesh_size": mesh_size} if backend == "dolfinx" else {}
+    t0 = time.perf_counter()
+    if case == "passive":
+        result = fe_oracle.run(lo_heart.geometry, "passive", backend, progress=_err.is_terminal, **options)
+        tr = result.traces
+        payload = {"case": case, "backend": backend, "P_lv": tr["P_lv"], "V": tr["V"], "from_cache": result.from_cache, "key": result.metadata.get("key")}
+        if as_json:
+            _print_json(payload)
+            return EXIT_OK
+        table = Table(title=f"{heart}: passive inflation ({backend}{', cached' if result.from_cache else ''}, {time.perf_counter() - t0:.1f} s)", title_justify="left")
+        table.add_column("P_lv (mmHg)", justify="right")
+        table.add_column("V (ml)", justify="right")
+        for p, v in zip(tr["P_lv"], tr["V"]):
+            table.add_row(display("P_lv_peak", p), f"{v:.2f}")
+        _out().print(table)
+        return EXIT_OK
+    if case == "closed":
+        circ, lo_case = lo_heart.circulation, lo_heart
+        result = fe_oracle.run(lo_heart.geometry, circ, backend, cell=lo_heart.cell, beats=beats, progress=_err.is_terminal, **options)
+    else:
+        lo_case = presets.training_condition(int(case), lo_heart)
+        result = fe_oracle.run(lo_heart.geometry, int(case), backend, cell=lo_heart.cell, progress=_err.is_terminal, **options)
+        beats = 1
+    fe_metrics = fe_oracle.beat_metrics(result)
+    lo_run = simulate(lo_case, beats=beats)
+    valid = bool(fe_metrics.pop("valid"))
+    if plot_path is not None:
+        period = float(result.metadata["period_s"])
+        tr = result.traces
+        last = tr["t"] >= tr["t"][-1] - period - 1e-9
+        fe_traces = Traces(tr["t"][last] - tr["t"][last][0], tr["V"][last], tr["P_lv"][last], tr["P_ao"][last])
+        plots.lo_fe_figure(lo_run.traces, fe_traces, plot_path, f"{heart}, case {case}: FE (solid) and LO (dashed)")
+    if as_json:
+        _print_json({"case": case, "backend": backend, "fe": fe_metrics, "fe_valid": valid, "lo": lo_run.metrics, "lo_status": lo_run.status,
+                     "from_cache": result.from_cache, "key": result.metadata.get("key"), "wall_time_s": time.perf_counter() - t0})
+        return EXIT_OK if valid else EXIT_FAILED
+    rows = [(f"FE ({backend})", {k: float(fe_metrics.get(k, math.nan)) for k in METRIC_NAMES}, "ok" if valid else "no_valve_cycle"),
+            ("LO", lo_run.metrics, lo_run.status)]
+    cached = ", cached" if result.from_cache else ""
+    _out().print(_metrics_table(f"{heart}, case {case}: last beat ({time.perf_counter() - t0:.1f} s{cached})", rows))
+    return EXIT_OK if valid else EXIT_FAILED
+
+
+#: Benchmarks of ``lvenv bench NAME``: scripts/bench_NAME.py of the source tree.
+BENCHES = ("lo", "env", "optim", "kriging", "fe", "cohort", "cold_start")
+
+
+@app.command("bench", epilog=_EPILOG, context_settings={"ignore_unknown_options": True})
+@click.argument("name", type=click.Choice(BENCHES))
+@click.argument("args", nargs=-1, type=click.UNPROCESSED)
+def bench_command(name, args) -> int:
+    """Run scripts/bench_NAME.py of the source checkout with ARGS (each prints JSON; see its --help)."""
+    import subprocess
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / f"bench_{name}.py"
+    if not script.is_file():
+        raise click.UsageError(f"lvenv bench runs the benchmark scripts of a source checkout; {script} does not exist")
+    done = subprocess.run([sys.executable, str(script), *args], cwd=script.parents[1])
+    return EXIT_OK if done.returncode == 0 else EXIT_FAILED
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code (see the module docstring)."""
     try:
@@ -232,7 +505,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         _err.print("lvenv: aborted")
         return EXIT_FAILED
     except InputError as err:
-        _err.print(f"lvenv: error: {err}", markup=False)
+        _err.print(f"lvenv: error: {err}", markup=False, soft_wrap=True)
         return EXIT_USAGE
     except Exception:  # noqa: BLE001 - the last line of defence: say it is our bug, show where
         _err.print("lvenv: internal error (please report it with the traceback below)", markup=False)

@@ -5,12 +5,15 @@ backend is already initialised or ``LVENV_CPU_DEVICES`` says otherwise. Batch-la
 then padded (with copies of the last member, which cannot affect the others: members never
 interact) and sharded along the batch axis.
 
-Padding also makes a member's result independent of the batch it runs in. XLA vectorises the
-elementwise loops over members and computes a remainder that does not fill a SIMD register by
-other instructions (other polynomial kernels for exp and log, no FMA), so a member's last bits
-would depend on its position and the batch size. Every batch is therefore padded to a multiple
-of :data:`LANES` members per device, at least one full vector of the widest registers
-(AVX-512: 8 float64 or 16 float32), so that every member takes the vector path.
+Padding also makes a member's result independent of the batch it runs in (in float64, the
+default). XLA vectorises the elementwise loops over members, and how it handles a loop depends
+on the trip count: measured on AVX-512 (AMD EPYC), a member's metrics in a batch of 8 differ in
+the last bit from the same member's in a batch of 16 or more, while all multiples of 16 agree, on
+one device or sharded over two. Every batch is therefore padded to a multiple of :data:`LANES`
+= 16 members per device (two vectors of 8 float64), which costs a single simulation about a
+third more time than padding to 8 did, and buys bit-identical members across batch sizes
+(``tests/lvenv/test_batching.py``). In float32, sharding over two devices still changes the
+last bits; float32 runs agree within its precision only.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ __all__ = ["request_cpu_devices", "shard_members", "padded_size", "MIN_MEMBERS_P
 
 MIN_MEMBERS_PER_DEVICE = 64
 #: Members per device are padded to a multiple of this (module docstring).
-LANES = 8
+LANES = 16
 
 
 def request_cpu_devices() -> None:

@@ -59,11 +59,12 @@ class FitRow(MinimizeResult):
     compile_time: float
 
 
-def make_env(patient: str | Patient, num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60) -> Any:
+def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60,
+             rtol: float = 1e-4) -> Any:
     """A vector env set up for optimisation (autoreset Disabled, no tolerance, no truncation)."""
     return gymnasium.make_vec(
         "lvenv/LVHeart-v0", num_envs=num_envs, patient=patient, max_episode_steps=None, tolerance=0.0,
-        autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats,
+        autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol,
     )
 
 

@@ -64,6 +64,13 @@ _reset_jit = jax.jit(_counted(_with_key(core.reset)), static_argnames="config")
 _step_jit = jax.jit(_counted(_with_key(core.step)), static_argnames="config")
 
 
+def _scatter(old: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
+    """``old`` (batch-last) with the members ``idx`` replaced by ``part``'s columns."""
+    out = np.array(old, copy=True)
+    out[..., idx] = part
+    return out
+
+
 class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
     """Vectorised ``lvenv/LVHeart-v0``; see :mod:`lvenv.env.core` for dynamics and reward.
 
@@ -133,7 +140,8 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_names = self.config.actions.names
         self.obs_names = OBS_NAMES
-        self._params, self._padded = shard_members(core.env_params(self.patients), num_envs)
+        self._host_params = core.env_params(self.patients)
+        self._params, self._padded = shard_members(self._host_params, num_envs)
         self._state: core.EnvState | None = None
         self._key: jax.Array | None = None
         self._parameters: np.ndarray | None = None  # (num_envs, k) action parameters of the last step
@@ -166,7 +174,8 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
                 raise InputError(f"reset options = {options!r}: the only option is 'patient'")
             if "patient" in options:
                 self.patients = resolve(options["patient"], self.num_envs)
-                self._params, _ = shard_members(core.env_params(self.patients), self.num_envs)
+                self._host_params = core.env_params(self.patients)
+                self._params, _ = shard_members(self._host_params, self.num_envs)
         super().reset(seed=seed)
         if seed is None:
             seed = int(self.np_random.integers(2**31 - 1))
@@ -231,6 +240,37 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self._state = jax.tree.map(lambda value, old: jax.device_put(value.astype(old.dtype), old.sharding), new, self._state)
         self._key = jax.device_put(arrays["key"].astype(np.asarray(self._key).dtype))
         self._parameters = arrays["parameters"].astype(float)
+
+    def replace_patients(self, members: Sequence[int], patients: Sequence) -> None:
+        """Give each of ``members`` (distinct indices) a new patient, one each (anything
+        ``patient=`` takes per member), without simulating: their next step starts from the new
+        patient's cold start, as the first step after a reset does with ``needs_reset``. Every
+        other member keeps its patient and state, so its results are unchanged bit for bit.
+
+        This lets a long run stream many patients through a fixed number of members (one
+        compiled step): :mod:`optim.cohort` refills a member as soon as its patient's fit ends.
+        """
+        if self._state is None:
+            raise gymnasium.error.ResetNeeded("call reset() before replace_patients()")
+        idx = np.asarray(members)
+        if idx.ndim != 1 or idx.dtype.kind not in "iu" or np.any((idx < 0) | (idx >= self.num_envs)) or len(np.unique(idx)) != len(idx):
+            raise InputError(f"members = {members!r} must be distinct member indices in [0, {self.num_envs - 1}]")
+        if isinstance(patients, (str, dict)) or len(patients) != len(idx):
+            raise InputError(f"replace_patients needs one patient per member: got {len(patients) if not isinstance(patients, (str, dict)) else 1} for the {len(idx)} members {idx.tolist()}")
+        new = resolve(list(patients), len(idx))
+        if not len(idx):
+            return
+        for i, patient in zip(idx, new):
+            self.patients[i] = patient
+        rows = core.env_params(new)
+        self._host_params = jax.tree.map(lambda old, part: _scatter(old, idx, part), self._host_params, rows)
+        self._params, _ = shard_members(self._host_params, self.num_envs)
+        state = self.get_state()
+        state["y"][idx] = rows.y_cold.T
+        state["steps"][idx] = 0
+        state["needs_reset"][idx] = False
+        state["parameters"][idx] = np.asarray(self.config.actions.current(rows.heart))
+        self.set_state(state)
 
     def member_heart(self, i: int):
         """Member i's Heart at its current parameters (host-side, for plotting or re-simulation)."""

@@ -25,6 +25,18 @@ def test_batch_equals_members_run_one_by_one():
         np.testing.assert_allclose(batch.traces.V[i], single.traces.V, rtol=1e-12)
 
 
+def test_a_member_is_bit_identical_in_batches_of_any_size():
+    """Padding to lvenv.devices.LANES per device: sizes below, at and above one pad block, and
+    sizes that shard over two devices, give the same bits for the same member."""
+    heart, other = presets.normal().replace(tau2=0.15, HR=72.0), presets.heart_failure()
+    reference = None
+    for n in (1, 8, 9, 17, 40, 128, 200):
+        res = lvenv.simulate([heart] + [other] * (n - 1), beats=2, steps_per_beat=200, traces=False)
+        values = np.array([res.metrics[k][0] for k in res.metrics])
+        reference = values if reference is None else reference
+        np.testing.assert_array_equal(values, reference, err_msg=f"batch of {n}")
+
+
 def test_stacked_pytree_equals_sequence_and_geometry_may_differ():
     hearts = cohort()
     a = lvenv.simulate(hearts, beats=2)

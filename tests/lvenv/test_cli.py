@@ -13,7 +13,7 @@ def test_presets_command_prints_both_tables(capsys):
     assert "normal" in out and "heart_failure (3)" in out and "EF (%)" in out and "IVRT (ms)" in out
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["presets", "--help"], ["simulate", "--help"], ["reach", "--help"], ["-h"]])
+@pytest.mark.parametrize("argv", [["--help"], *([c, "--help"] for c in ("presets", "simulate", "reach", "fit", "cohort", "train", "oracle", "bench")), ["-h"]])
 def test_help_of_every_command_works(argv, capsys):
     assert cli.main(argv) == cli.EXIT_OK
     out = capsys.readouterr().out
@@ -85,3 +85,75 @@ def test_long_commands_show_progress_on_a_terminal(monkeypatch, capsys):
     monkeypatch.setattr(cli, "_err", Console(file=io.StringIO(), force_terminal=False))
     assert cli.main(["simulate", "--beats", "1", "--json"]) == cli.EXIT_OK
     assert "simulating" not in capsys.readouterr().err  # nothing but the result when piped
+
+
+def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_fit(tmp_path, capsys):
+    plot, convergence = tmp_path / "fit.png", tmp_path / "convergence.pdf"
+    argv = ["fit", "normal", "--method", "cma", "--budget", "16", "--num-envs", "8", "--steps-per-beat", "250", "--plot", str(plot),
+            "--convergence", str(convergence), "--json"]
+    assert cli.main(argv) == cli.EXIT_OK
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and convergence.read_bytes()[:5] == b"%PDF-"
+    payload = json.loads(capsys.readouterr().out)
+    assert set(payload["parameters"]) == {"tau2", "Sa", "R2", "R3", "C", "Cat"}
+    assert payload["evaluations"] == 16 and payload["status"] in ("ok", "not_converged")
+    assert set(payload["mismatch_per_target"]) == set(payload["targets"]) and payload["compile_time_s"] > 0
+    assert cli.main(["fit", "nobody"]) == cli.EXIT_USAGE
+    assert "nobody" in capsys.readouterr().err
+
+
+def test_cohort_command_skips_bad_rows_naming_their_lines_and_fits_the_rest(tmp_path, capsys):
+    reports = tmp_path / "reports.csv"
+    reports.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg,HR_bpm\n"
+                       "A,58,290,85,124,78,64\nB,58,,85,124,78,64\nC,160,290,85,124,78,64\n")
+    argv = ["cohort", str(reports), "--out", str(tmp_path / "fits.csv"), "--budget", "8", "--candidates", "8"]
+    assert cli.main(argv + ["--json"]) == cli.EXIT_OK
+    captured = capsys.readouterr()
+    assert "line 3 (id B): ET_ms is missing; skipped" in captured.err and "line 4 (id C): EF_pct = 160" in captured.err
+    summary = json.loads(captured.out)
+    assert summary["fitted"] == 1 and [b["line"] for b in summary["bad_rows"]] == [3, 4]
+    header = (tmp_path / "fits.csv").read_text().splitlines()[0]
+    assert header.startswith("id,tau2_s,Sa,R2_kPa_s_per_ml,R3_kPa_s_per_ml,C_ml_per_kPa,Cat_ml_per_kPa,mismatch,")
+    no_hr = tmp_path / "no_hr.csv"
+    no_hr.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg\nA,58,290,85,124,78\n")
+    assert cli.main(["cohort", str(no_hr), "--out", str(tmp_path / "x.csv")]) == cli.EXIT_USAGE
+    assert "lacks the required column(s) ['HR_bpm']" in capsys.readouterr().err
+
+
+def test_the_persistent_jit_cache_stores_compiled_programs_unless_turned_off(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "LVENV_JIT_CACHE": str(tmp_path / "jax")}
+    argv = [sys.executable, "-m", "lvenv.cli", "simulate", "--beats", "1", "--steps-per-beat", "50", "--json"]
+    done = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert list((tmp_path / "jax").iterdir()), "the process stored its compiled programs"
+    off = subprocess.run(argv[:3] + ["--no-jit-cache"] + argv[3:], env={**os.environ, "LVENV_JIT_CACHE": str(tmp_path / "other")},
+                         capture_output=True, text=True, timeout=300)
+    assert off.returncode == 0, off.stderr
+    assert not (tmp_path / "other").exists()
+
+
+def test_simulate_plot_writes_a_pdf_and_refuses_other_suffixes_before_simulating(tmp_path, capsys):
+    pdf = tmp_path / "beat.pdf"
+    assert cli.main(["simulate", "--steps-per-beat", "250", "--plot", str(pdf)]) == cli.EXIT_OK
+    assert pdf.read_bytes()[:5] == b"%PDF-"
+    assert cli.main(["simulate", "--plot", str(tmp_path / "beat.txt")]) == cli.EXIT_USAGE
+    assert "must end in one of ('.png', '.pdf')" in capsys.readouterr().err
+
+
+def test_oracle_and_train_commands_run_on_the_multielement_backend(tmp_path, capsys):
+    plot = tmp_path / "lo_fe.png"
+    argv = ["oracle", "normal", "--case", "2", "--backend", "multielement", "--plot", str(plot), "--json"]
+    assert cli.main(argv) == cli.EXIT_OK
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["fe_valid"] and payload["lo_status"] == "ok" and 0.3 < payload["fe"]["EF"] < 0.8
+    assert plot.stat().st_size > 0
+    out = tmp_path / "trained.json"
+    assert cli.main(["train", "normal", "--backend", "multielement", "--budget", "16", "--delay", "never", "--out", str(out)]) == cli.EXIT_OK
+    from lvenv.trained import TrainedLO
+
+    trained = TrainedLO.from_json(out)
+    assert trained.provenance["backend"] == "multielement" and 0.0 <= trained.congruency["C"] < 1.0
+    assert cli.main(["bench", "nonsense"]) == cli.EXIT_USAGE

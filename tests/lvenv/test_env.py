@@ -145,6 +145,33 @@ def test_cohort_of_three_patients_matches_separate_envs(tmp_path):
     assert len({round(float(x), 6) for x in step_t[1]}) == 3, "members really hold different patients"
 
 
+def test_replace_patients_restarts_those_members_cold_and_leaves_the_others_bit_identical():
+    optimise = dict(autoreset_mode="Disabled", tolerance=0.0, max_episode_steps=None, **FAST)
+    env = gymnasium.make_vec(ENV_ID, num_envs=4, patient="normal", **optimise)
+    ref = gymnasium.make_vec(ENV_ID, num_envs=4, patient="normal", **optimise)
+    first = np.array([[0.12, 1.0, 0.02, 0.25, 12.0, 3.0]] * 4)
+    second = np.array([[0.2, 1.3, 0.03, 0.2, 15.0, 2.0], [0.15, 0.9, 0.01, 0.3, 8.0, 6.0],
+                       [0.25, 1.1, 0.02, 0.4, 10.0, 4.0], [0.1, 0.8, 0.015, 0.3, 9.0, 5.0]])
+    for e in (env, ref):
+        e.reset(seed=0)
+        e.step(first)
+    hf = builtin("heart_failure")
+    env.unwrapped.replace_patients([1, 2], [hf, hf])
+    assert [p.name for p in env.unwrapped.patients] == ["normal", "heart_failure", "heart_failure", "normal"]
+    got, expected = env.step(second), ref.step(second)
+    for i in (0, 3):
+        assert np.array_equal(got[0][i], expected[0][i]) and got[1][i] == expected[1][i]
+    names = env.unwrapped.action_names
+    cold = lvenv.simulate([hf.heart.replace(**dict(zip(names, map(float, second[i])))) for i in (1, 2)], traces=False, **FAST)
+    for j, i in enumerate((1, 2)):
+        np.testing.assert_allclose(got[0][i], [cold.metrics[k][j] for k in OBS_NAMES], rtol=1e-10)
+    assert got[1][1] != expected[1][1], "the replaced members are scored against their new patient"
+    with pytest.raises(ValueError, match="distinct member indices"):
+        env.unwrapped.replace_patients([1, 1], [hf, hf])
+    with pytest.raises(ValueError, match="one patient per member: got 1 for the 2 members"):
+        env.unwrapped.replace_patients([0, 3], [hf])
+
+
 @pytest.fixture(scope="module")
 def fuzz_env():
     return gymnasium.make_vec(ENV_ID, num_envs=32, steps_per_beat=250, max_beats=8)

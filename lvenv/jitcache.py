@@ -1,0 +1,47 @@
+"""JAX's persistent compilation cache, so that a new process does not recompile the LO heart.
+
+A fit compiles the env's reset and step (about 10–15 s on a 2-core CPU) in every new process.
+With the cache on, XLA's compiled programs are stored on disk, keyed by the program, the JAX
+and XLA versions and the device, and a later process with the same program loads them instead
+(``README``, "Fast cold start", has the measured times). Tracing still runs in every process.
+
+Directory: ``$LVENV_JIT_CACHE`` if set, else ``$XDG_CACHE_HOME/lvenv/jax`` (default
+``~/.cache/lvenv/jax``). ``LVENV_JIT_CACHE=off`` turns it off. The ``lvenv`` CLI calls
+:func:`enable` unless given ``--no-jit-cache``; library users call it themselves. Entries are
+safe to delete at any time (the cache only costs a recompilation).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+
+__all__ = ["default_dir", "enable", "OFF"]
+
+OFF = "off"
+#: Programs compiling faster than this are not worth a disk entry (s).
+MIN_COMPILE_TIME_S = 0.5
+
+
+def default_dir() -> Path | None:
+    """The cache directory (module docstring), or None when ``LVENV_JIT_CACHE=off``."""
+    chosen = os.environ.get("LVENV_JIT_CACHE")
+    if chosen is not None:
+        return None if chosen.strip().lower() == OFF else Path(chosen).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "lvenv" / "jax"
+
+
+def enable(directory: str | os.PathLike[str] | None = None) -> Path | None:
+    """Turn on the persistent cache in ``directory`` (default :func:`default_dir`); returns the
+    directory used, or None when the cache is off. Call it before the first compilation."""
+    path = Path(directory).expanduser() if directory is not None else default_dir()
+    if path is None:
+        return None
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path

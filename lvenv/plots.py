@@ -1,0 +1,134 @@
+"""Figures of a beat (matplotlib, Agg backend): PV loop and traces, a fit against its targets
+(the paper's Fig. 10), and LO against FE traces. Each writes PNG or PDF by the file's suffix.
+
+Axes are in display units (mmHg, ms, ml) through :mod:`lvenv.units`; the functions take internal
+units (s, ml, kPa) like the rest of :mod:`lvenv`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from lvenv.simulation import Traces
+from lvenv.units import MS_PER_S, kpa_to_mmhg
+from lvenv.validation import InputError
+
+__all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure"]
+
+SUFFIXES = (".png", ".pdf")
+
+
+def _figure(path: str | os.PathLike[str], ncols: int, width: float = 11.0):
+    path = Path(path)
+    if path.suffix.lower() not in SUFFIXES:
+        raise InputError(f"plot file {str(path)!r} must end in one of {SUFFIXES}")
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, 4.0))
+    return path, fig, fig.subplots(1, ncols)
+
+
+def _save(fig, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def _traces(ax, tr: Traces, style: str = "-", label: str = "") -> None:
+    t_ms = np.asarray(tr.t) * MS_PER_S
+    ax.plot(t_ms, kpa_to_mmhg(np.asarray(tr.P_lv)), style, color="C3", label=f"P_lv {label}".strip())
+    if tr.P_ao is not None and np.any(np.isfinite(tr.P_ao)):
+        ax.plot(t_ms, kpa_to_mmhg(np.asarray(tr.P_ao)), style, color="C0", label=f"P_ao {label}".strip())
+    ax.set(xlabel="t (ms)", ylabel="P (mmHg)")
+
+
+def beat_figure(traces: Traces, path: str | os.PathLike[str], title: str = "") -> Path:
+    """PV loop (left) and P_lv, P_ao and V against time (right) of one beat."""
+    path, fig, (ax_pv, ax_t) = _figure(path, 2)
+    ax_pv.plot(traces.V, kpa_to_mmhg(np.asarray(traces.P_lv)), color="C3")
+    ax_pv.set(xlabel="V (ml)", ylabel="P_lv (mmHg)", title=title)
+    _traces(ax_t, traces)
+    ax_v = ax_t.twinx()
+    ax_v.plot(np.asarray(traces.t) * MS_PER_S, traces.V, "--", color="C2", label="V")
+    ax_v.set_ylabel("V (ml)")
+    ax_t.legend(loc="upper right", fontsize=8)
+    return _save(fig, path)
+
+
+def fit_figure(traces: Traces, metrics: Mapping[str, float], targets: Mapping[str, float], path: str | os.PathLike[str],
+               title: str = "") -> Path:
+    """A fitted beat against its targets (after the paper's Fig. 10): pressures and volume over
+    the beat, the targeted pressures as dotted lines, the target ET as a bar from the fitted
+    aortic opening and the target IVRT from the fitted aortic closing, and the target
+    ESV = EDV·(1 − EF) as a line."""
+    path, fig, (ax_p, ax_v) = _figure(path, 2)
+    _traces(ax_p, traces)
+    for key, color in (("P_ao_sys", "C0"), ("P_ao_dia", "C0"), ("P_ao_mean", "C9")):
+        if key in targets:
+            ax_p.axhline(kpa_to_mmhg(targets[key]), ls=":", color=color, label=f"target {key}")
+    t_open, t_close = _ejection(traces)
+    top = ax_p.get_ylim()[1]
+    for i, (key, start) in enumerate((("ET", t_open), ("IVRT", t_close))):
+        if key in targets and np.isfinite(start):
+            ax_p.plot([start, start + float(targets[key]) * MS_PER_S], [top * (0.95 - 0.05 * i)] * 2, lw=4, color=f"C{i + 1}", label=f"target {key}")
+    ax_p.legend(loc="upper right", fontsize=7)
+    ax_p.set_title(title)
+    t_ms = np.asarray(traces.t) * MS_PER_S
+    ax_v.plot(t_ms, traces.V, color="C2", label="V")
+    if "EF" in targets:
+        esv = float(metrics["EDV"]) * (1.0 - float(targets["EF"]))
+        ax_v.axhline(esv, ls=":", color="k", label="target ESV = EDV (1 − EF)")
+    for key in ("EDV", "ESV"):
+        if key in targets:
+            ax_v.axhline(float(targets[key]), ls="--", color="k", label=f"target {key}")
+    ax_v.set(xlabel="t (ms)", ylabel="V (ml)")
+    ax_v.legend(loc="upper right", fontsize=7)
+    return _save(fig, path)
+
+
+def _ejection(traces: Traces) -> tuple[float, float]:
+    """Times (ms) of the fitted aortic opening and closing: the first run of P_lv > P_ao."""
+    open_ = np.asarray(traces.P_lv) > np.asarray(traces.P_ao)
+    if not open_.any():
+        return np.nan, np.nan
+    first = int(np.argmax(open_))
+    last = first + int(np.argmin(open_[first:])) if not open_[first:].all() else len(open_) - 1
+    t_ms = np.asarray(traces.t) * MS_PER_S
+    return float(t_ms[first]), float(t_ms[last])
+
+
+def lo_fe_figure(lo: Traces, fe: Traces, path: str | os.PathLike[str], title: str = "") -> Path:
+    """P and V against time of the FE oracle (solid) and the LO heart (dashed), and both PV loops."""
+    path, fig, (ax_p, ax_v, ax_pv) = _figure(path, 3, width=14.0)
+    _traces(ax_p, fe, "-", "FE")
+    _traces(ax_p, lo, "--", "LO")
+    ax_p.legend(fontsize=7)
+    ax_p.set_title(title)
+    for tr, style, label in ((fe, "-", "FE"), (lo, "--", "LO")):
+        ax_v.plot(np.asarray(tr.t) * MS_PER_S, tr.V, style, color="C2", label=label)
+        ax_pv.plot(tr.V, kpa_to_mmhg(np.asarray(tr.P_lv)), style, color="C3", label=label)
+    ax_v.set(xlabel="t (ms)", ylabel="V (ml)")
+    ax_pv.set(xlabel="V (ml)", ylabel="P_lv (mmHg)")
+    ax_pv.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def convergence_figure(best: Mapping[str, np.ndarray], path: str | os.PathLike[str], title: str = "") -> Path:
+    """Optimiser convergence: best mismatch so far (%, log scale) against evaluations, one line
+    per run (``best[label]`` is the running minimum per evaluation, inf before a success)."""
+    path, fig, ax = _figure(path, 1, width=6.0)
+    for label, values in best.items():
+        values = np.asarray(values, float)
+        ax.plot(np.arange(1, len(values) + 1), np.where(np.isfinite(values), 100.0 * values, np.nan), label=label)
+    ax.set(xlabel="evaluations", ylabel="best mismatch (%)", yscale="log", title=title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)

@@ -1,0 +1,591 @@
+"""Cohort fitting from echo reports: every patient fitted together in one vector env.
+
+Input: a CSV with one echo report per row (:func:`read_reports`). Required columns, units in
+their names: ``id``, ``EF_pct``, ``ET_ms``, ``IVRT_ms``, ``SBP_mmHg``, ``DBP_mmHg``, ``HR_bpm``.
+Optional: ``EDV_ml``, ``ESV_ml`` (more targets), the geometry ``Rb_mm``, ``L_mm``, ``Z_mm``,
+``H_mm``, ``e``, ``C0_deg`` (any subset replaces the base heart's), and weights ``w_<target>``
+(``w_EF``, ``w_ET``, ``w_IVRT``, ``w_DBP``, ``w_MAP``, ``w_EDV``, ``w_ESV``; default 1). Any other
+column is carried through to the output unchanged. A bad row (a missing or non-numeric required
+value, an impossible number, a duplicate id, targets that contradict each other) is reported
+with its line number and reason and skipped; it never stops the others.
+
+Cuff pressures → the model's aortic targets. A brachial cuff measures the systolic pressure of
+the arm, which exceeds the central aortic systolic pressure by a pulse amplification that varies
+between people (typically 5–15 mmHg), while diastolic and mean pressure change little along the
+large arteries (Nichols WW, O'Rourke MF, *McDonald's Blood Flow in Arteries*, 6th ed. 2011,
+ch. 24; Pauca AL et al., Hypertension 38:932, 2001). So the cuff values set two targets:
+
+    P_ao_dia  = DBP,
+    P_ao_mean = DBP + 0.412 (SBP − DBP)      (Meaney E et al., Heart 84:64, 2000),
+
+and the central systolic pressure is left free (reported as ``fit_SBP_central_mmHg``).
+:func:`cuff_from_central` is the inverse used by ``scripts/make_cohort.py``.
+
+The heart: the base heart (``presets.normal()``, the trained LO maps) at the row's heart rate,
+which is a per-member parameter of the LO heart (the beat period is 60 / HR), and with the row's
+geometry where given; the fitted parameters are :data:`lvenv.identification.DEFAULT_ACTION_PARAMS`
+(τ2, Sa, R2, R3, C, Cat) inside their identification bounds.
+
+Fitting (:func:`fit_reports`): ``slots`` patients at a time, each with ``candidates`` members of
+one vector env (members = patients × candidates), one env step per round for all of them. Each
+patient has its own CMA-ES (:mod:`optim.cmaes`, λ = candidates, IPOP restarts) started from the
+base heart's values and seeded from its ``id``. A patient's search stops when its best mismatch
+falls below ``stop_mismatch``, when its CMA-ES stops for good, or at ``budget`` evaluations; its
+members are then refilled with the next report (:meth:`LVHeartVectorEnv.replace_patients`), so
+the step never changes shape and is compiled once. Each env step runs at most ``max_beats``
+beats per member from the member's warm state (a member not yet at steady state carries on from
+there in its next step); before a fit is reported, its best point is *confirmed*: evaluated on
+all the patient's members until one reaches the steady-state criterion of
+:func:`lvenv.simulate` (``rtol``), for at most ``confirm_steps`` more steps. The reported
+metrics, mismatch and ``status`` are those of the confirmed steady state; a best point that
+never settles is reported ``not_converged``, one that fails with its failure status.
+
+A patient's fit depends only on its own report, the options and its seed: never on the other
+patients, on its slot, or on how the cohort was split (the member computations are elementwise
+and padded, :mod:`lvenv.devices`). So a cohort split over Dask workers (:func:`run_cohort`)
+gives the same fits, and a resumed run refits nothing.
+
+Output (:func:`output_columns`): ``id``, the carried-through columns,
+the fitted parameters (internal units, in the column names), ``mismatch`` (weighted mean relative
+error over the row's targets, a fraction), ``mismatch_<target>`` (|relative error| per target),
+the model's values at the fit (``fit_<column>``), ``evaluations``, ``stop``, ``status`` and the
+input ``line``. Rows are written as patients finish; failed values are empty cells, never zeros.
+"""
+
+from __future__ import annotations
+
+import collections
+import csv
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import time
+import zlib
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lvenv import presets
+from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
+from lvenv.metrics import METRICS, OBS_NAMES, Metric
+from lvenv.params import Heart, ranges
+from lvenv.patients import Patient
+from lvenv.status import EF_MIN, is_usable
+from lvenv.units import kpa_to_mmhg, mmhg_to_kpa
+from lvenv.validation import InputError, integer, real
+from optim.cmaes import CmaEs, CmaOptions
+from optim.fit import make_env
+from optim.minimize import unit_bounds
+
+__all__ = [
+    "FORM_FACTOR", "REQUIRED", "TARGETS", "GEOMETRY_COLUMNS", "CohortOptions", "Report", "BadRow",
+    "Reports", "read_reports", "cuff_targets", "cuff_from_central", "parameter_column", "output_columns",
+    "fit_reports", "run_cohort", "summarise", "patient_seed", "CohortError",
+]
+
+#: Fraction of the pulse pressure above DBP at which the mean pressure lies (Meaney et al. 2000).
+FORM_FACTOR = 0.412
+
+REQUIRED = ("id", "EF_pct", "ET_ms", "IVRT_ms", "SBP_mmHg", "DBP_mmHg", "HR_bpm")
+
+
+@dataclasses.dataclass(frozen=True)
+class Target:
+    """One report target: its label (``w_<label>``, ``mismatch_<label>``), model observation and
+    column, in the display units of :data:`lvenv.metrics.METRICS` (``fit_<column>`` in the output)."""
+
+    label: str
+    obs: str
+    column: str
+
+    @property
+    def metric(self) -> Metric:
+        return METRICS[self.obs]
+
+
+#: The targets a report can set. DBP and MAP come from the cuff pressures (module docstring).
+TARGETS = (
+    Target("EF", "EF", "EF_pct"),
+    Target("ET", "ET", "ET_ms"),
+    Target("IVRT", "IVRT", "IVRT_ms"),
+    Target("DBP", "P_ao_dia", "DBP_mmHg"),
+    Target("MAP", "P_ao_mean", "MAP_mmHg"),
+    Target("EDV", "EDV", "EDV_ml"),
+    Target("ESV", "ESV", "ESV_ml"),
+)
+_CUFF = ("DBP", "MAP")
+
+#: Optional geometry columns → :class:`lvenv.geometry.Geometry` fields.
+GEOMETRY_COLUMNS = {"Rb_mm": "Rb", "L_mm": "L", "Z_mm": "Z", "H_mm": "H", "e": "e", "C0_deg": "C0"}
+_KNOWN = set(REQUIRED) | {"EDV_ml", "ESV_ml"} | set(GEOMETRY_COLUMNS) | {f"w_{t.label}" for t in TARGETS}
+
+
+class CohortError(InputError):
+    """A cohort file that cannot be used at all (missing columns, an output of other options)."""
+
+
+def cuff_targets(sbp_mmhg: float, dbp_mmhg: float) -> tuple[float, float]:
+    """Cuff SBP, DBP (mmHg) → the model's targets (P_ao_dia, P_ao_mean) in kPa (module docstring)."""
+    return float(mmhg_to_kpa(dbp_mmhg)), float(mmhg_to_kpa(dbp_mmhg + FORM_FACTOR * (sbp_mmhg - dbp_mmhg)))
+
+
+def cuff_from_central(p_dia_kpa: float, p_mean_kpa: float) -> tuple[float, float]:
+    """The cuff (SBP, DBP) in mmHg that :func:`cuff_targets` maps to these central pressures."""
+    dia, mean = float(kpa_to_mmhg(p_dia_kpa)), float(kpa_to_mmhg(p_mean_kpa))
+    return dia + (mean - dia) / FORM_FACTOR, dia
+
+
+def parameter_column(name: str) -> str:
+    """Output column of a fitted parameter, units in the name: ``tau2_s``, ``R3_kPa_s_per_ml``."""
+    units = ACTION_BOUNDS[name].units
+    if units == "1":
+        return name
+    return f"{name}_" + units.replace("·", "_").replace("/", "_per_")
+
+
+@dataclasses.dataclass(frozen=True)
+class Report:
+    """One good row: its input line, id, the patient it defines and the carried-through columns."""
+
+    line: int
+    id: str
+    patient: Patient
+    extra: dict[str, str]
+
+
+@dataclasses.dataclass(frozen=True)
+class BadRow:
+    """A row that was skipped: its input line, id (if any) and the reason."""
+
+    line: int
+    id: str
+    reason: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Reports:
+    """What :func:`read_reports` found: good rows, bad rows and the extra column names."""
+
+    rows: list[Report]
+    bad: list[BadRow]
+    extra_columns: list[str]
+
+
+def _value(row: Mapping[str, str], column: str, required: bool) -> float | None:
+    text = (row.get(column) or "").strip()
+    if not text:
+        if required:
+            raise InputError(f"{column} is missing")
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise InputError(f"{column} = {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise InputError(f"{column} = {text!r} must be finite")
+    return value
+
+
+def _patient(row: Mapping[str, str], base: Heart) -> Patient:
+    """The patient of one report row (module docstring); InputError naming the column on bad input."""
+    v = {c: _value(row, c, c in REQUIRED) for c in (*REQUIRED[1:], "EDV_ml", "ESV_ml")}
+    if not EF_MIN * 100.0 < v["EF_pct"] <= 100.0:
+        raise InputError(f"EF_pct = {v['EF_pct']:g} must lie in ({100 * EF_MIN:g}, 100] (a percentage; 0.6 would be 0.6 %)")
+    for column in ("ET_ms", "IVRT_ms", "SBP_mmHg", "DBP_mmHg", "EDV_ml", "ESV_ml"):
+        if v[column] is not None and v[column] <= 0.0:
+            raise InputError(f"{column} = {v[column]:g} must be positive")
+    if not v["DBP_mmHg"] < v["SBP_mmHg"]:
+        raise InputError(f"DBP_mmHg = {v['DBP_mmHg']:g} must be below SBP_mmHg = {v['SBP_mmHg']:g}")
+    hr_lo, hr_hi = ranges()["HR"][:2]
+    real("HR_bpm", v["HR_bpm"], hr_lo, hr_hi)
+    targets = {t.obs: float(t.metric.from_display(v[t.column])) for t in TARGETS if t.label not in _CUFF and v[t.column] is not None}
+    targets["P_ao_dia"], targets["P_ao_mean"] = cuff_targets(v["SBP_mmHg"], v["DBP_mmHg"])
+    weights = {}
+    for t in TARGETS:
+        w = _value(row, f"w_{t.label}", False)
+        if w is not None:
+            if t.obs not in targets:
+                raise InputError(f"w_{t.label} = {w:g} weights a target the row does not give ({t.column})")
+            weights[t.obs] = w
+    geometry = {field: _value(row, column, False) for column, field in GEOMETRY_COLUMNS.items()}
+    heart = base.replace(HR=v["HR_bpm"])
+    if any(g is not None for g in geometry.values()):
+        heart = dataclasses.replace(heart, geometry=dataclasses.replace(base.geometry, **{k: g for k, g in geometry.items() if g is not None}))
+    return Patient(str(row["id"]).strip(), heart, targets, weights)
+
+
+def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Reports:
+    """Parse a report CSV (module docstring). A file without a required column raises
+    :class:`CohortError` naming the missing columns; a bad row is listed in ``bad``."""
+    base = presets.normal() if base is None else base
+    path = Path(path)
+    try:
+        handle = path.open(newline="")
+    except OSError as err:
+        raise CohortError(f"cannot read the report file {str(path)!r}: {err.strerror or err}") from None
+    with handle:
+        reader = csv.DictReader(handle)
+        columns = [c.strip() for c in (reader.fieldnames or [])]
+        if missing := [c for c in REQUIRED if c not in columns]:
+            raise CohortError(f"{str(path)!r} lacks the required column(s) {missing}; required: {list(REQUIRED)}")
+        if len(set(columns)) != len(columns):
+            raise CohortError(f"{str(path)!r} repeats a column name: {columns}")
+        reader.fieldnames = columns
+        extra_columns = [c for c in columns if c not in _KNOWN]
+        if clash := sorted(set(extra_columns) & set(output_columns(()))):
+            raise CohortError(f"{str(path)!r} has the column(s) {clash}, which the output writes itself; rename them")
+        rows, bad, seen = [], [], {}
+        for row in reader:
+            line = reader.line_num
+            rid = (row.get("id") or "").strip()
+            try:
+                if None in row:
+                    raise InputError(f"the row has {len(columns) + len(row[None])} fields for {len(columns)} columns")
+                if None in row.values():
+                    raise InputError(f"the row has {sum(v is not None for v in row.values())} fields for {len(columns)} columns")
+                if not rid:
+                    raise InputError("id is missing")
+                if rid in seen:
+                    raise InputError(f"id {rid!r} repeats the row on line {seen[rid]}")
+                patient = _patient(row, base)
+            except (InputError, ValueError) as err:
+                bad.append(BadRow(line, rid, str(err)))
+                continue
+            seen[rid] = line
+            rows.append(Report(line, rid, patient, {c: row.get(c) or "" for c in extra_columns}))
+    return Reports(rows, bad, extra_columns)
+
+
+@dataclasses.dataclass(frozen=True)
+class CohortOptions:
+    """How a cohort is fitted (module docstring). Defaults (ours) reach the issue-13 acceptance
+    on the synthetic cohort of ``scripts/make_cohort.py`` on a 2-core CPU (README, "Fitting patients and cohorts")."""
+
+    candidates: int = 8  # members per patient: CMA-ES λ
+    slots: int = 128  # patients fitted at once
+    budget: int = 640  # evaluations per patient, at most (confirmation not counted)
+    stop_mismatch: float = 0.01  # a patient's search stops below this mismatch (fraction)
+    sigma0: float = 0.25  # CMA-ES initial step, unit-cube units
+    steps_per_beat: int = 500
+    max_beats: int = 12  # beats per member and env step
+    confirm_steps: int = 10  # env steps to confirm the best point's steady state, at most
+    rtol: float = 1e-4  # steady-state criterion (lvenv.simulate)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        integer("candidates", self.candidates, 2)
+        integer("slots", self.slots, 1)
+        integer("budget", self.budget, self.candidates)
+        real("stop_mismatch", self.stop_mismatch, 0.0, 1.0)
+        real("sigma0", self.sigma0, 0.0, 1.0, lo_open=True)
+        integer("steps_per_beat", self.steps_per_beat, 10)
+        integer("max_beats", self.max_beats, 1)
+        integer("confirm_steps", self.confirm_steps, 1)
+        real("rtol", self.rtol, 0.0, 1.0, lo_open=True)
+        integer("seed", self.seed, 0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def patient_seed(seed: int, rid: str) -> int:
+    """The CMA-ES seed of the patient ``rid``: a function of the run's seed and the id only."""
+    return int(np.random.SeedSequence([seed, zlib.crc32(rid.encode())]).generate_state(1)[0])
+
+
+class _Fit:
+    """One patient: its CMA-ES search, then the confirmation of its best point (module docstring)."""
+
+    def __init__(self, report: Report, space: ParameterSpace, options: CohortOptions) -> None:
+        self.report, self.space, self.options = report, space, options
+        heart = report.patient.heart
+        u0 = space.to_unit(space.clip(np.array([float(heart.get(n)) for n in space.names])))
+        cma_options = CmaOptions(sigma0=options.sigma0, restarts=10**6)
+        self.opt = CmaEs(unit_bounds(space), options.candidates, patient_seed(options.seed, report.id), cma_options, x0=u0)
+        self.best_u: np.ndarray | None = None
+        self.best = (math.inf, np.full(len(OBS_NAMES), np.nan), "failed")  # mismatch, observation, status
+        self.last_status = "failed"
+        self.stop: str | None = None
+        self.confirming = 0
+        self.result: dict[str, Any] | None = None
+        self._asked: np.ndarray | None = None
+
+    def points(self) -> np.ndarray | None:
+        """The (candidates, k) unit-cube points of the next step; None once the fit is over."""
+        lam = self.options.candidates
+        if self.stop is None:
+            u = self.opt.ask(self.options.budget - self.opt.evaluations)
+            if len(u):
+                self._asked = u
+                return np.concatenate([u, np.repeat(u[-1:], lam - len(u), axis=0)])
+            self.stop = "budget" if self.opt.evaluations >= self.options.budget else "optimiser"
+        if self.best_u is None:
+            self._finish(math.nan, np.full(len(OBS_NAMES), np.nan), self.last_status)
+        elif self.best[2] == "ok":  # the best point already reached steady state in its step
+            self._finish(*self.best)
+        if self.result is not None:
+            return None
+        return np.repeat(self.best_u[None], lam, axis=0)
+
+    def absorb(self, f: np.ndarray, mismatch: np.ndarray, obs: np.ndarray, status: np.ndarray) -> bool:
+        """Take this patient's slice of a step's results; True when the fit is over."""
+        usable = is_usable(status) & np.isfinite(mismatch)
+        if self._asked is not None:
+            q = len(self._asked)
+            self.opt.tell(self._asked, f[:q], usable[:q])
+            score = np.where(usable[:q], mismatch[:q], np.inf)
+            i = int(np.argmin(score))
+            if score[i] < self.best[0]:
+                self.best_u, self.best = self._asked[i].copy(), (float(mismatch[i]), obs[i].copy(), str(status[i]))
+            if not usable[:q].all():
+                self.last_status = str(status[:q][~usable[:q]][0])
+            self._asked = None
+            if self.best[0] < self.options.stop_mismatch:
+                self.stop = "tolerance"
+            elif self.opt.evaluations >= self.options.budget:
+                self.stop = "budget"
+            return False
+        self.confirming += 1
+        settled = usable & (status == "ok")
+        if settled.any():
+            i = int(np.argmax(settled))
+            self._finish(float(mismatch[i]), obs[i], "ok")
+        elif not usable.any():
+            self._finish(math.nan, np.full(len(OBS_NAMES), np.nan), str(status[0]))
+        elif self.confirming >= self.options.confirm_steps:
+            i = int(np.argmax(usable))
+            self._finish(float(mismatch[i]), obs[i], "not_converged")
+        return self.result is not None
+
+    def _finish(self, mismatch: float, obs: np.ndarray, status: str) -> None:
+        patient = self.report.patient
+        x = self.space.from_unit(self.best_u) if self.best_u is not None else np.full(self.space.dimension, np.nan)
+        self.result = {
+            "id": self.report.id,
+            "line": self.report.line,
+            "extra": self.report.extra,
+            "parameters": dict(zip(self.space.names, map(float, x))),
+            "observation": dict(zip(OBS_NAMES, map(float, obs))),
+            "targets": dict(patient.targets),
+            "mismatch": float(mismatch),
+            "evaluations": self.opt.evaluations,
+            "stop": self.stop or "failed",
+            "status": status,
+        }
+
+
+def _relative_errors(result: Mapping[str, Any]) -> dict[str, float]:
+    obs, targets = result["observation"], result["targets"]
+    return {k: abs(obs[k] - t) / t for k, t in targets.items()}
+
+
+def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None, *, on_done: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+    """Fit every report (module docstring); returns one result dict per report in finishing order
+    and calls ``on_done(result)`` as each patient finishes."""
+    options = options or CohortOptions()
+    if not reports:
+        return []
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
+    lam = options.candidates
+    slots = min(options.slots, len(reports))
+    queue = collections.deque(reports)
+    venv = make_env([r.patient for r in reports[:slots] for _ in range(lam)], slots * lam, options.steps_per_beat, options.max_beats, options.rtol)
+    env = venv.unwrapped
+    env.reset(seed=0)
+    fits: list[_Fit | None] = [None] * slots
+    units = np.full((slots * lam, space.dimension), 0.5)
+    results: list[dict[str, Any]] = []
+
+    def done(s: int) -> None:
+        results.append(fits[s].result)
+        if on_done is not None:
+            on_done(fits[s].result)
+        fits[s] = None
+
+    try:
+        while queue or any(fits):
+            members, incoming = [], []
+            for s in range(slots):
+                while fits[s] is not None or queue:
+                    fresh = fits[s] is None
+                    if fresh:
+                        fits[s] = _Fit(queue.popleft(), space, options)
+                    if (u := fits[s].points()) is None:
+                        done(s)
+                        continue
+                    units[s * lam:(s + 1) * lam] = u
+                    if fresh:
+                        members.extend(range(s * lam, (s + 1) * lam))
+                        incoming.extend([fits[s].report.patient] * lam)
+                    break
+            if not any(fits):
+                break
+            if members:
+                env.replace_patients(members, incoming)
+            _, reward, _, _, info = venv.step(env.config.actions.to_action(space.from_unit(units)))
+            obs = np.stack([info[k] for k in OBS_NAMES], axis=1)
+            for s, fit in enumerate(fits):
+                sl = slice(s * lam, (s + 1) * lam)
+                if fit is not None and fit.absorb(-reward[sl], info["mismatch"][sl], obs[sl], info["status"][sl]):
+                    done(s)
+    finally:
+        venv.close()
+    return results
+
+
+def output_columns(extra_columns: Sequence[str]) -> list[str]:
+    """The output CSV's columns for a report file with these carried-through columns."""
+    return [
+        "id", *extra_columns, *(parameter_column(n) for n in DEFAULT_ACTION_PARAMS), "mismatch",
+        *(f"mismatch_{t.label}" for t in TARGETS), *(f"fit_{t.column}" for t in TARGETS), "fit_SBP_central_mmHg",
+        "evaluations", "stop", "status", "line",
+    ]
+
+
+
+def _cell(value: float, digits: int = 6) -> str:
+    return "" if value is None or not math.isfinite(value) else f"{value:.{digits}g}"
+
+
+def _row(result: Mapping[str, Any]) -> dict[str, str]:
+    errors = _relative_errors(result)
+    obs = result["observation"]
+    row = {"id": result["id"], **result["extra"]}
+    row.update({parameter_column(n): _cell(v) for n, v in result["parameters"].items()})
+    row["mismatch"] = _cell(result["mismatch"])
+    for t in TARGETS:
+        row[f"mismatch_{t.label}"] = _cell(errors.get(t.obs, math.nan)) if math.isfinite(result["mismatch"]) else ""
+        row[f"fit_{t.column}"] = _cell(t.metric.to_display(obs[t.obs]))
+    row["fit_SBP_central_mmHg"] = _cell(METRICS["P_ao_sys"].to_display(obs["P_ao_sys"]))
+    row.update(evaluations=str(result["evaluations"]), stop=result["stop"], status=result["status"], line=str(result["line"]))
+    return row
+
+
+def _chunks(items: Sequence[Report], size: int) -> Iterator[list[Report]]:
+    for start in range(0, len(items), size):
+        yield list(items[start:start + size])
+
+
+def _fit_chunk(reports: list[Report], options: CohortOptions) -> list[dict[str, Any]]:
+    """A Dask task: fit one chunk of reports in the worker's own env."""
+    return fit_reports(reports, options)
+
+
+def _meta(reports_path: Path, options: CohortOptions) -> dict[str, Any]:
+    digest = hashlib.sha256(reports_path.read_bytes()).hexdigest()
+    return {"reports_sha256": digest, "options": options.to_dict()}
+
+
+def _finished(out: Path, columns: list[str]) -> set[str]:
+    """Ids already in ``out``; a torn last line (a killed run) is dropped from the file."""
+    text = out.read_text()
+    if text and not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+        out.write_text(text)
+    lines = text.splitlines()
+    if not lines:
+        return set()
+    if next(csv.reader([lines[0]])) != columns:
+        raise CohortError(f"{str(out)!r} has other columns than this run would write; delete it or choose another --out")
+    return {row["id"] for row in csv.DictReader(lines)}
+
+
+def run_cohort(
+    reports_path: str | os.PathLike[str],
+    out_path: str | os.PathLike[str],
+    options: CohortOptions | None = None,
+    *,
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: Callable[[int, int, dict[str, Any] | None], None] | None = None,
+) -> dict[str, Any]:
+    """Fit a report CSV into ``out_path`` (module docstring); resumable.
+
+    ``out_path`` gets a row per patient as it finishes; ``<out_path>.json`` records the input's
+    SHA-256 and the options. If both exist, the run resumes: patients already in the output are
+    not refitted; an output written for another input or other options is refused
+    (:class:`CohortError`). With ``scheduler`` (a Dask scheduler address) or ``workers`` > 1 (a
+    Dask ``LocalCluster`` of that many single-threaded processes), the remaining reports are cut
+    into chunks of ``slots`` patients fitted by the workers; the fits are the same.
+    ``progress(done, total, result)`` is called at the start (result None) and per patient.
+
+    Returns a summary: counts, bad rows, wall time, and the mismatch distribution of this file.
+    """
+    options = options or CohortOptions()
+    workers = integer("workers", workers, 1)
+    start = time.perf_counter()
+    reports_path, out = Path(reports_path), Path(out_path)
+    parsed = read_reports(reports_path)
+    columns = output_columns(parsed.extra_columns)
+    meta_path = out.with_name(out.name + ".json")
+    meta = _meta(reports_path, options)
+    done: set[str] = set()
+    if out.exists() and out.stat().st_size:
+        if not meta_path.exists() or json.loads(meta_path.read_text()) != meta:
+            raise CohortError(f"{str(out)!r} was written for another report file or other options "
+                              f"(see {str(meta_path)!r}); delete both or choose another --out")
+        done = _finished(out, columns)
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        meta_path.write_text(json.dumps(meta, indent=2))
+        out.write_text(",".join(columns) + "\n")
+    pending = [r for r in parsed.rows if r.id not in done]
+    total = len(parsed.rows)
+    count = total - len(pending)
+    if progress is not None:
+        progress(count, total, None)
+    with out.open("a", newline="") as handle:
+        writer = csv.DictWriter(handle, columns)
+
+        def write(result: dict[str, Any]) -> None:
+            nonlocal count
+            writer.writerow(_row(result))
+            handle.flush()
+            os.fsync(handle.fileno())
+            count += 1
+            if progress is not None:
+                progress(count, total, result)
+
+        if scheduler is None and workers == 1:
+            fit_reports(pending, options, on_done=write)
+        else:
+            _distributed(pending, options, write, workers, scheduler)
+    return {**summarise(out), "bad_rows": [dataclasses.asdict(b) for b in parsed.bad], "resumed": len(done),
+            "wall_time_s": time.perf_counter() - start, "output": str(out)}
+
+
+def _distributed(pending: list[Report], options: CohortOptions, write: Callable[[dict[str, Any]], None],
+                 workers: int, scheduler: str | None) -> None:
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+    client = Client(scheduler if scheduler is not None else cluster)
+    try:
+        futures = [client.submit(_fit_chunk, chunk, options, pure=False) for chunk in _chunks(pending, options.slots)]
+        for future in as_completed(futures):
+            for result in future.result():
+                write(result)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def summarise(out_path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Counts and the mismatch distribution (median, 95th percentile, max) of an output CSV."""
+    with Path(out_path).open(newline="") as handle:
+        rows = list(csv.DictReader(handle))
+    mismatch = np.array([float(r["mismatch"]) if r["mismatch"] else np.inf for r in rows])
+    status = collections.Counter(r["status"] for r in rows)
+    finite = mismatch[np.isfinite(mismatch)]
+    stats = {}
+    if len(mismatch):
+        stats = {"median": float(np.median(mismatch)), "p95": float(np.percentile(mismatch, 95)), "max": float(np.max(mismatch))}
+    return {"fitted": len(rows), "status": dict(status), "mismatch": stats, "usable": int(len(finite))}
+
