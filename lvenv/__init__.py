@@ -17,6 +17,7 @@ from lvenv import geometry, presets
 from lvenv.geometry import Geometry
 from lvenv.params import CellParams, Circulation, Heart, LOParams, stack
 from lvenv.simulation import STATUS, SimulationResult, simulate
+from lvenv.sensitivity import Jacobian, jacobian
 
 from lvenv.env import register as _register_envs
 from lvenv.patients import Patient
@@ -26,5 +27,5 @@ _register_envs()
 __all__ = [
     "Patient",
     "geometry", "presets", "Geometry", "Heart", "LOParams", "CellParams", "Circulation",
-    "stack", "simulate", "SimulationResult", "STATUS",
+    "stack", "simulate", "SimulationResult", "STATUS", "jacobian", "Jacobian",
 ]

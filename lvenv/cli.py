@@ -257,7 +257,8 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 
 @app.command("fit", epilog=_EPILOG)
 @click.argument("patient")
-@click.option("--method", type=click.Choice(("mads", "cma", "kriging")), default="mads", show_default=True)
+@click.option("--method", type=click.Choice(("mads", "cma", "kriging", "lm")), default="mads", show_default=True,
+              help="lm: multi-start least squares with autodiff Jacobians (optim.lm)")
 @click.option("--budget", type=click.IntRange(min=16), default=480, show_default=True, help="steady-state simulations, at most")
 @click.option("--num-envs", type=click.IntRange(min=1), default=16, show_default=True, help="members of the vector env (points per round)")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
@@ -275,11 +276,18 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identif
     from optim.minimize import minimize
 
     record = _patient_arg(patient)
-    venv = make_env(record, num_envs, steps_per_beat)
-    with _working("compiling the model"):
-        compile_time = warm_up(venv)
-    res = minimize(venv, method, budget=budget, seed=seed, progress=_err.is_terminal, **DEFAULT_OPTIONS.get(method, {}))
-    venv.close()
+    if method == "lm":
+        from optim.lm import fit_lm
+
+        compile_time = 0.0  # compiled during the first evaluation, inside wall_time
+        with _working("fitting by least squares"):
+            res = fit_lm(record, budget=budget, seed=seed, steps_per_beat=steps_per_beat)
+    else:
+        venv = make_env(record, num_envs, steps_per_beat)
+        with _working("compiling the model"):
+            compile_time = warm_up(venv)
+        res = minimize(venv, method, budget=budget, seed=seed, progress=_err.is_terminal, **DEFAULT_OPTIONS.get(method, {}))
+        venv.close()
     ok = is_usable(res.status) and math.isfinite(res.mismatch)
     payload = {"patient": record.name, "method": method, "parameters": res.parameters, "targets": res.targets,
                "observation": res.observation, "mismatch": res.mismatch, "mismatch_per_target": res.mismatch_per_target,

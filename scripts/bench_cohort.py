@@ -23,10 +23,12 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 
-from optim.cohort import CohortOptions, fit_reports, read_reports
-from optim.fit import make_env, warm_up
-from optim.minimize import minimize
-from scripts import make_cohort
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from optim.cohort import CohortOptions, fit_reports, read_reports  # noqa: E402
+from optim.fit import make_env, warm_up  # noqa: E402
+from optim.minimize import minimize  # noqa: E402
+from scripts import make_cohort  # noqa: E402
 
 
 def _stats(mismatch: list[float]) -> dict[str, float]:

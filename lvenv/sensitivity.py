@@ -1,0 +1,185 @@
+"""Derivatives of the steady-state beat metrics with respect to any LO, cell or circulation
+parameter: :func:`jacobian`, by forward-mode autodiff through the integrator and the event
+location, closed by the implicit-function theorem at the periodic steady state.
+
+Method. Let one beat map the start-of-beat state to the end-of-beat state, ``y ↦ F(y, θ)``, and
+give that beat's metrics ``M(y, θ)``. At the steady state y* = F(y*, θ), so
+
+    (I − F_y) dy*/dθ = F_θ,        dM/dθ = M_y dy*/dθ + M_θ.
+
+F_y (9 × 9), F_θ, M_y and M_θ come from 9 + k forward-mode JVPs of *one* beat from y*
+(``jax.jvp`` through the ``lax.scan`` of ROS2 steps and the event accumulator), for all members
+at once. In the closed loop the blood volume c(y, θ) = V + C P_c + Cat P_at is conserved, so
+I − F_y is singular along the volume direction: each steady state belongs to one volume, the
+cold start's, c(y0(θ), θ) (:func:`lvenv.model.initial_state`, the same volume the env's warm
+starts keep). The volume row ∇_y c · dy* = d c(y0(θ), θ)/dθ − ∂c/∂θ closes the system, which is
+solved by least squares (10 × 9, consistent). The cold-start volume's derivative is a central
+difference on the host (a smooth closed form and a converged Newton root, relative step 1e-6).
+Geometry enters only through V0 (computed on the host) and is not a ``wrt`` parameter.
+
+Where the metrics are not differentiable. Valve events are located by linear interpolation
+between integrator steps (:mod:`lvenv.events`), so at a fixed ``steps_per_beat`` an event time
+is a smooth function of θ *between* grid steps, and the returned derivative is that of the
+interpolated crossing inside the step where it lies. When a change of θ moves an event across a
+step, the interpolation's slope changes: durations (IVCT, ET, IVRT, filling time) and the
+volumes read at events (EDV, ESV, EF, SV) have kinks there, with one-sided derivatives that
+differ by O(h); this derivative is the one of the current step. The valves themselves are
+diodes (flow ∝ max(ΔP, 0)); their switching is resolved by the steps, with the same kind of
+kink. Peak and extreme pressures are maxima over the step samples (the derivative of the
+maximising sample). Members whose steady state is not usable (any status but ``ok``) get NaN
+rows, never numbers: ``not_converged`` included, since the derivative assumes y* = F(y*).
+
+Checked against central finite differences of :func:`lvenv.simulate` over random hearts in
+``tests/lvenv/test_sensitivity.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lvenv import model
+from lvenv.devices import shard_members
+from lvenv.identification import DEFAULT_ACTION_PARAMS
+from lvenv.metrics import METRIC_NAMES
+from lvenv.model import IDX_PAT, IDX_PC, IDX_V, N_STATES
+from lvenv.params import Heart, as_batch, field_names
+from lvenv.simulation import beat, simulate
+from lvenv.validation import InputError
+
+__all__ = ["Jacobian", "jacobian"]
+
+_VOLUME_STEP = 1e-6  # relative central-difference step of the cold-start blood volume
+
+
+@dataclasses.dataclass(frozen=True)
+class Jacobian:
+    """d metric / d parameter at the steady state, in internal units per internal unit.
+
+    ``values`` has shape ``(len(metrics), len(wrt))`` for one heart, with a leading batch axis
+    for a batch; ``metrics_at`` holds the metric values there, ``status`` the steady state's
+    status (a member that is not ``ok`` has NaN rows)."""
+
+    wrt: tuple[str, ...]
+    metrics: tuple[str, ...]
+    values: np.ndarray
+    metrics_at: dict[str, np.ndarray | float]
+    status: np.ndarray | str
+
+    def __getitem__(self, key: tuple[str, str]) -> np.ndarray | float:
+        """``jac["EF", "tau2"]``: d EF / d τ2 (per member for a batch)."""
+        metric, name = key
+        if metric not in self.metrics or name not in self.wrt:
+            raise KeyError(f"{key!r}: metrics are {self.metrics}, parameters {self.wrt}")
+        return self.values[..., self.metrics.index(metric), self.wrt.index(name)]
+
+
+def _check_names(wrt: Sequence[str], metrics: Sequence[str]) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    if isinstance(wrt, str) or isinstance(metrics, str):
+        raise InputError("wrt and metrics must be sequences of names, e.g. wrt=('tau2',), not a single string")
+    wrt, metrics = tuple(wrt), tuple(metrics)
+    known = field_names()
+    for name in wrt:
+        if name not in known:
+            raise InputError(f"wrt contains {name!r}, which is not an LO, cell or circulation parameter; known: {known}")
+        if name == "closed_loop":
+            raise InputError("wrt = 'closed_loop' is a switch (0 or 1), not a differentiable parameter")
+    for name in metrics:
+        if name not in METRIC_NAMES:
+            raise InputError(f"metrics contains {name!r}; choose from {METRIC_NAMES}")
+    if not wrt or not metrics or len(set(wrt)) != len(wrt) or len(set(metrics)) != len(metrics):
+        raise InputError(f"wrt = {wrt} and metrics = {metrics} must be non-empty and without repeats")
+    return wrt, metrics
+
+
+def _volume(p: model.ModelParams, y: np.ndarray) -> np.ndarray:
+    """Closed-loop blood volume V + C P_c + Cat P_at (ml) of states ``y`` (9, B)."""
+    return y[IDX_V] + np.asarray(p.circ.C) * y[IDX_PC] + np.asarray(p.circ.Cat) * y[IDX_PAT]
+
+
+def _cold_volume_rates(heart: Heart, wrt: tuple[str, ...]) -> np.ndarray:
+    """d c(y0(θ), θ) / dθ_j (k, B) by central differences on the host (module docstring)."""
+    rates = []
+    for name in wrt:
+        value = np.asarray(heart.get(name), float)
+        step = _VOLUME_STEP * np.maximum(np.abs(value), 1e-3)
+        vols = []
+        for sign in (1.0, -1.0):
+            p = model.model_params(heart.replace(**{name: value + sign * step}))
+            vols.append(_volume(p, model.initial_state(p)))
+        rates.append((vols[0] - vols[1]) / (2.0 * step))
+    return np.stack(rates)
+
+
+@functools.partial(jax.jit, static_argnames=("wrt", "metrics", "steps"))
+def _beat_tangents(p: model.ModelParams, y: jax.Array, theta: jax.Array, *, wrt: tuple[str, ...], metrics: tuple[str, ...], steps: int):
+    """JVPs of one beat from ``y`` (9, S) along each state axis and each parameter of ``wrt``
+    (values ``theta`` (k, S)), all members at once: (end state (9 + k, 9, S), metrics (9 + k, m, S))."""
+
+    def one_beat(y, th):
+        pp = p.replace(**{name: th[j] for j, name in enumerate(wrt)})
+        y_end, m, _, _ = beat(pp, y, steps, False)
+        return y_end, jnp.stack([m[name] for name in metrics])
+
+    k, size = len(wrt), y.shape[1]
+    eye_y = jnp.concatenate([jnp.broadcast_to(jnp.eye(N_STATES)[:, :, None], (N_STATES, N_STATES, size)), jnp.zeros((k, N_STATES, size))])
+    eye_th = jnp.concatenate([jnp.zeros((N_STATES, k, size)), jnp.broadcast_to(jnp.eye(k)[:, :, None], (k, k, size))])
+    return jax.vmap(lambda dy, dth: jax.jvp(one_beat, (y, theta), (dy, dth))[1])(eye_y, eye_th)
+
+
+def jacobian(
+    heart: Heart | Sequence[Heart],
+    wrt: Sequence[str] = DEFAULT_ACTION_PARAMS,
+    metrics: Sequence[str] = METRIC_NAMES,
+    *,
+    max_beats: int = 200,
+    rtol: float = 1e-6,
+    steps_per_beat: int = 1000,
+) -> Jacobian:
+    """d metrics / d ``wrt`` of the steady-state beat of ``heart`` (one Heart or a batch), at the
+    settings :func:`lvenv.simulate` takes (module docstring for the method and its limits).
+
+    The steady state is found by :func:`lvenv.simulate` with ``rtol`` (tighter than the default
+    1e-4: the derivative assumes y* = F(y*)); a member that does not reach it has NaN rows.
+    """
+    wrt, metrics = _check_names(wrt, metrics)
+    batch, single = as_batch(heart)
+    steady = simulate(batch, max_beats=max_beats, rtol=rtol, steps_per_beat=steps_per_beat, traces=False)
+    p = model.model_params(batch)
+    n, k = len(p.v0), len(wrt)
+    theta = np.stack([np.asarray(p.get(name), float) for name in wrt])  # (k, B)
+    y_star = np.asarray(steady.final_state, float).T  # (9, B)
+    (p_dev, y_dev, theta_dev), _ = shard_members((p, y_star, theta), n)
+
+    d_y, d_m = jax.device_get(_beat_tangents(p_dev, y_dev, theta_dev, wrt=wrt, metrics=metrics, steps=steps_per_beat))
+    d_y, d_m = np.asarray(d_y)[..., :n], np.asarray(d_m)[..., :n]
+    f_y, f_th = np.moveaxis(d_y[:N_STATES], 0, 1), np.moveaxis(d_y[N_STATES:], 0, 1)  # (9, 9, B), (9, k, B)
+    m_y, m_th = np.moveaxis(d_m[:N_STATES], 0, 1), np.moveaxis(d_m[N_STATES:], 0, 1)  # (m, 9, B), (m, k, B)
+
+    closed = np.asarray(p.circ.closed_loop, float)
+    grad_c = np.zeros((N_STATES, n))
+    grad_c[IDX_V], grad_c[IDX_PC], grad_c[IDX_PAT] = 1.0, np.asarray(p.circ.C), np.asarray(p.circ.Cat)
+    partial_c = np.zeros((k, n))  # ∂c/∂θ at fixed state: P_c for C, P_at for Cat
+    for j, name in enumerate(wrt):
+        if name == "C":
+            partial_c[j] = y_star[IDX_PC]
+        elif name == "Cat":
+            partial_c[j] = y_star[IDX_PAT]
+    volume_rhs = _cold_volume_rates(batch, wrt) - partial_c  # (k, B)
+
+    values = np.full((n, len(metrics), k), np.nan)
+    for b in np.flatnonzero(np.atleast_1d(steady.status) == "ok"):
+        a = np.vstack([np.eye(N_STATES) - f_y[:, :, b], closed[b] * grad_c[:, b][None]])
+        rhs = np.vstack([f_th[:, :, b], closed[b] * volume_rhs[:, b][None]])
+        dy_star = np.linalg.lstsq(a, rhs, rcond=None)[0]
+        values[b] = m_y[:, :, b] @ dy_star + m_th[:, :, b]
+    at = {name: np.asarray(steady.metrics[name]) for name in metrics}
+    if single:
+        return Jacobian(wrt, metrics, values[0], {name: float(v[0]) for name, v in at.items()}, str(steady.status[0]))
+    return Jacobian(wrt, metrics, values, at, np.asarray(steady.status))
+
