@@ -44,7 +44,7 @@ from rich.table import Table
 
 from lvenv import jitcache, plots, presets
 from lvenv.geometry import cavity_volume
-from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS
+from lvenv.identification import ACTION_BOUNDS
 from lvenv.metrics import METRIC_NAMES, display, header
 from lvenv.params import field_names
 from lvenv.patients import BUILTIN, Patient, builtin
@@ -263,7 +263,7 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--num-envs", type=click.IntRange(min=1), default=16, show_default=True, help="members of the vector env (points per round)")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--steps-per-beat", type=click.IntRange(min=10), default=500, show_default=True, help="ROS2 steps per cardiac cycle")
-@click.option("--identifiability", is_flag=True, help="also report the local sensitivity at the fit: singular values and null directions")
+@click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
 @click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
@@ -272,7 +272,7 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
 def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identifiability, fidelity, fidelity_mesh, plot_path, convergence_path, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets."""
-    from optim.fit import DEFAULT_OPTIONS, make_env, null_directions, warm_up
+    from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
     from optim.minimize import minimize
 
     record = _patient_arg(patient)
@@ -299,10 +299,10 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identif
         beat = simulate(heart, steps_per_beat=steps_per_beat)
         plots.fit_figure(beat.traces, beat.metrics, res.targets, plot_path, f"{record.name}: {method} fit, mismatch {100 * res.mismatch:.2f} %")
     if identifiability and ok:
-        names = list(DEFAULT_ACTION_PARAMS)
-        sigmas, null = null_directions(record.heart, np.array([[res.parameters[n] for n in names]]), list(record.targets), steps_per_beat)
-        payload["identifiability"] = {"singular_values": sigmas[0],
-                                      "null_directions": [dict(zip(names, v)) for v in null[0].T]}
+        from optim.identify import sensitivity
+
+        sens = sensitivity(record, res.parameters, steps_per_beat=steps_per_beat)
+        payload["identifiability"] = {"singular_values": sens.singular_values, "null_directions": sens.null_directions}
     if fidelity and ok:
         try:
             from optim.congruency import check_fidelity
@@ -324,7 +324,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identif
     out.print(targets)
     if "identifiability" in payload:
         ident = payload["identifiability"]
-        out.print("singular values of d ln(targets) / d(unit-cube parameters): " + ", ".join(f"{v:.3g}" for v in ident["singular_values"]))
+        out.print("singular values of the noise-scaled sensitivity (optim.identify; χ per unit-cube step): " + ", ".join(f"{v:.3g}" for v in ident["singular_values"]))
         for j, direction in enumerate(ident["null_directions"]):
             out.print(f"null direction {j + 1} (targets unchanged to first order): " + ", ".join(f"{n} {v:+.2f}" for n, v in direction.items()))
     if "fidelity" in payload:

@@ -149,12 +149,14 @@ def parameter_column(name: str) -> str:
 
 @dataclasses.dataclass(frozen=True)
 class Report:
-    """One good row: its input line, id, the patient it defines and the carried-through columns."""
+    """One fit to do: its input line, id, the patient, the carried-through columns and, for
+    constrained fits (`optim.identify.profile`), parameters held fixed at the given values."""
 
     line: int
     id: str
     patient: Patient
     extra: dict[str, str]
+    fixed: Mapping[str, float] = dataclasses.field(default_factory=dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -300,12 +302,13 @@ def patient_seed(seed: int, rid: str) -> int:
 class _Fit:
     """One patient: its CMA-ES search, then the confirmation of its best point (module docstring)."""
 
-    def __init__(self, report: Report, space: ParameterSpace, options: CohortOptions) -> None:
-        self.report, self.space, self.options = report, space, options
+    def __init__(self, report: Report, options: CohortOptions) -> None:
+        self.report, self.options = report, options
+        self.space = ParameterSpace.for_names([n for n in DEFAULT_ACTION_PARAMS if n not in report.fixed])
         heart = report.patient.heart
-        u0 = space.to_unit(space.clip(np.array([float(heart.get(n)) for n in space.names])))
+        u0 = self.space.to_unit(self.space.clip(np.array([float(heart.get(n)) for n in self.space.names])))
         cma_options = CmaOptions(sigma0=options.sigma0, restarts=10**6)
-        self.opt = CmaEs(unit_bounds(space), options.candidates, patient_seed(options.seed, report.id), cma_options, x0=u0)
+        self.opt = CmaEs(unit_bounds(self.space), options.candidates, patient_seed(options.seed, report.id), cma_options, x0=u0)
         self.best_u: np.ndarray | None = None
         self.best = (math.inf, np.full(len(OBS_NAMES), np.nan), "failed")  # mismatch, observation, status
         self.last_status = "failed"
@@ -313,6 +316,12 @@ class _Fit:
         self.confirming = 0
         self.result: dict[str, Any] | None = None
         self._asked: np.ndarray | None = None
+
+    def physical(self, u: np.ndarray) -> np.ndarray:
+        """Unit-cube points of the free parameters → (n, 6) values of every action parameter."""
+        free = dict(zip(self.space.names, np.atleast_2d(self.space.from_unit(u)).T))
+        n = len(np.atleast_2d(u))
+        return np.stack([free[name] if name in free else np.full(n, float(self.report.fixed[name])) for name in DEFAULT_ACTION_PARAMS], axis=1)
 
     def points(self) -> np.ndarray | None:
         """The (candidates, k) unit-cube points of the next step; None once the fit is over."""
@@ -363,12 +372,12 @@ class _Fit:
 
     def _finish(self, mismatch: float, obs: np.ndarray, status: str) -> None:
         patient = self.report.patient
-        x = self.space.from_unit(self.best_u) if self.best_u is not None else np.full(self.space.dimension, np.nan)
+        x = self.physical(self.best_u)[0] if self.best_u is not None else np.full(len(DEFAULT_ACTION_PARAMS), np.nan)
         self.result = {
             "id": self.report.id,
             "line": self.report.line,
             "extra": self.report.extra,
-            "parameters": dict(zip(self.space.names, map(float, x))),
+            "parameters": dict(zip(DEFAULT_ACTION_PARAMS, map(float, x))),
             "observation": dict(zip(OBS_NAMES, map(float, obs))),
             "targets": dict(patient.targets),
             "mismatch": float(mismatch),
@@ -397,7 +406,7 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
     env = venv.unwrapped
     env.reset(seed=0)
     fits: list[_Fit | None] = [None] * slots
-    units = np.full((slots * lam, space.dimension), 0.5)
+    actions = np.repeat(space.from_unit(np.full((1, space.dimension), 0.5)), slots * lam, axis=0)
     results: list[dict[str, Any]] = []
 
     def done(s: int) -> None:
@@ -413,11 +422,11 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
                 while fits[s] is not None or queue:
                     fresh = fits[s] is None
                     if fresh:
-                        fits[s] = _Fit(queue.popleft(), space, options)
+                        fits[s] = _Fit(queue.popleft(), options)
                     if (u := fits[s].points()) is None:
                         done(s)
                         continue
-                    units[s * lam:(s + 1) * lam] = u
+                    actions[s * lam:(s + 1) * lam] = fits[s].physical(u)
                     if fresh:
                         members.extend(range(s * lam, (s + 1) * lam))
                         incoming.extend([fits[s].report.patient] * lam)
@@ -426,7 +435,7 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
                 break
             if members:
                 env.replace_patients(members, incoming)
-            _, reward, _, _, info = venv.step(env.config.actions.to_action(space.from_unit(units)))
+            _, reward, _, _, info = venv.step(env.config.actions.to_action(actions))
             obs = np.stack([info[k] for k in OBS_NAMES], axis=1)
             for s, fit in enumerate(fits):
                 sl = slice(s * lam, (s + 1) * lam)

@@ -90,13 +90,15 @@ def test_long_commands_show_progress_on_a_terminal(monkeypatch, capsys):
 def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_fit(tmp_path, capsys):
     plot, convergence = tmp_path / "fit.png", tmp_path / "convergence.pdf"
     argv = ["fit", "normal", "--method", "cma", "--budget", "16", "--num-envs", "8", "--steps-per-beat", "250", "--plot", str(plot),
-            "--convergence", str(convergence), "--json"]
+            "--convergence", str(convergence), "--identifiability", "--json"]
     assert cli.main(argv) == cli.EXIT_OK
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and convergence.read_bytes()[:5] == b"%PDF-"
     payload = json.loads(capsys.readouterr().out)
     assert set(payload["parameters"]) == {"tau2", "Sa", "R2", "R3", "C", "Cat"}
     assert payload["evaluations"] == 16 and payload["status"] in ("ok", "not_converged")
     assert set(payload["mismatch_per_target"]) == set(payload["targets"]) and payload["compile_time_s"] > 0
+    ident = payload["identifiability"]
+    assert len(ident["singular_values"]) == 4 and len(ident["null_directions"]) == 2, "4 targets, 6 parameters"
     assert cli.main(["fit", "nobody"]) == cli.EXIT_USAGE
     assert "nobody" in capsys.readouterr().err
 

@@ -1,0 +1,45 @@
+"""`optim.identify`: the sensitivity's null directions and profile likelihoods whose every point
+is a real constrained fit, checked by an independent simulation."""
+
+import numpy as np
+import pytest
+
+import lvenv
+from lvenv.identification import ACTION_BOUNDS
+from lvenv.patients import builtin
+from optim.cohort import CohortOptions
+from optim.identify import DELTA_95, chi2, profile, sensitivity
+
+STEPS = 250
+
+
+def test_null_directions_change_no_target_and_four_targets_leave_two_of_them():
+    patient = builtin("normal")
+    sens = sensitivity(patient, steps_per_beat=STEPS)
+    assert sens.matrix.shape == (4, 6) and len(sens.null_directions) == 2
+    for direction in sens.null_directions:
+        v = np.array([direction[n] for n in sens.names])
+        assert np.linalg.norm(v) == pytest.approx(1.0)
+        assert np.linalg.norm(sens.matrix @ v) <= 1e-3 * sens.singular_values[0]
+    assert all(0.0 <= sens.null_component(n) <= 1.0 + 1e-12 for n in sens.names)
+
+
+def test_each_profile_point_is_a_constrained_fit_with_the_chi2_it_reports():
+    patient = builtin("heart_failure")
+    options = CohortOptions(budget=48, stop_mismatch=0.0, steps_per_beat=STEPS, confirm_steps=4)
+    prof = profile(patient, names=("Sa", "R3"), grid=3, options=options)
+    for name in ("Sa", "R3"):
+        bound = ACTION_BOUNDS[name]
+        assert prof.grid[name][0] == pytest.approx(bound.lo) and prof.grid[name][-1] == pytest.approx(bound.hi)
+        hearts = [patient.heart.replace(**fit) for fit in prof.fits[name]]
+        for fit, value in zip(prof.fits[name], prof.grid[name]):
+            assert fit[name] == value, "the profiled parameter is held at its grid value"
+        sim = lvenv.simulate(hearts, steps_per_beat=STEPS, traces=False)
+        for g, heart_chi2 in enumerate(prof.chi2[name]):
+            independent = chi2(patient, {k: float(v[g]) for k, v in sim.metrics.items()})
+            assert heart_chi2 == pytest.approx(independent, rel=2e-2, abs=1e-2)
+        lo, hi = prof.interval[name]
+        assert (prof.classification[name] == "identified") == (lo is not None and hi is not None)
+    assert prof.chi2_min == pytest.approx(min(np.nanmin(v) for v in prof.chi2.values()))
+    assert DELTA_95 == pytest.approx(3.84)
+    assert prof.evaluations <= 6 * options.budget
