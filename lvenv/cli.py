@@ -1,4 +1,4 @@
-"""Command line: ``lvenv presets | simulate | reach | fit | cohort | train | oracle | bench`` (``lvenv --help``), on Click with rich output.
+"""Command line: ``lvenv presets | simulate | reach | fit | cohort | train | oracle | bench | report`` (``lvenv --help``), on Click with rich output.
 
 Exit codes (also in ``lvenv --help``):
 
@@ -489,15 +489,38 @@ BENCHES = ("lo", "env", "optim", "kriging", "fe", "cohort", "cold_start")
 @click.argument("name", type=click.Choice(BENCHES))
 @click.argument("args", nargs=-1, type=click.UNPROCESSED)
 def bench_command(name, args) -> int:
-    """Run scripts/bench_NAME.py of the source checkout with ARGS (each prints JSON; see its --help)."""
+    """Run scripts/bench_NAME.py of the source checkout with ARGS (each prints JSON, kept in
+    out/bench/NAME.json for `lvenv report`; see `lvenv bench NAME -- --help`)."""
     import subprocess
     from pathlib import Path
 
     script = Path(__file__).resolve().parents[1] / "scripts" / f"bench_{name}.py"
     if not script.is_file():
         raise click.UsageError(f"lvenv bench runs the benchmark scripts of a source checkout; {script} does not exist")
-    done = subprocess.run([sys.executable, str(script), *args], cwd=script.parents[1])
+    done = subprocess.run([sys.executable, str(script), *args], cwd=script.parents[1], stdout=subprocess.PIPE, text=True)
+    click.echo(done.stdout, nl=False)
+    try:
+        json.loads(done.stdout)
+    except json.JSONDecodeError:
+        pass  # --help or an error: nothing to keep for the report
+    else:
+        saved = script.parents[1] / "out" / "bench" / f"{name}.json"
+        saved.parent.mkdir(parents=True, exist_ok=True)
+        saved.write_text(done.stdout)
     return EXIT_OK if done.returncode == 0 else EXIT_FAILED
+
+
+@app.command("report", epilog=_EPILOG)
+@click.option("--root", type=click.Path(file_okay=False), default="out", show_default=True, help="where the experiments left their results")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="the report [default: ROOT/report/report.md]")
+def report_command(root, out_path) -> int:
+    """Rebuild one markdown report of every experiment (congruency, generalisation, multi-element,
+    inverse problem, cohort, performance) from cached results; nothing is recomputed."""
+    from optim.report import build_report
+
+    path = build_report(root, out_path)
+    _out().print(f"report written to {path}")
+    return EXIT_OK
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -17,7 +17,7 @@ from lvenv.simulation import Traces
 from lvenv.units import MS_PER_S, kpa_to_mmhg
 from lvenv.validation import InputError
 
-__all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure"]
+__all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure", "histogram_figure"]
 
 SUFFIXES = (".png", ".pdf")
 
@@ -131,4 +131,12 @@ def convergence_figure(best: Mapping[str, np.ndarray], path: str | os.PathLike[s
     ax.set(xlabel="evaluations", ylabel="best mismatch (%)", yscale="log", title=title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def histogram_figure(values: np.ndarray, path: str | os.PathLike[str], xlabel: str, title: str = "") -> Path:
+    """A histogram of ``values`` (already in display units), e.g. a cohort's mismatch."""
+    path, fig, ax = _figure(path, 1, width=6.0)
+    ax.hist(np.asarray(values, float), bins=40, color="C0")
+    ax.set(xlabel=xlabel, ylabel="count", title=title)
     return _save(fig, path)

@@ -8,7 +8,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -82,7 +85,11 @@ def main() -> None:
         print(f"singular values of d ln(targets)/du (median over truths): {np.round(np.median(rep.singular_values, 0), 2)}")
         return
     rows = fit_patients(a.patients, a.methods, a.num_envs, a.budget or 480, a.seed, a.out, a.steps_per_beat)
-    print_fits(rows)
+    table = io.StringIO()
+    with contextlib.redirect_stdout(table):
+        print_fits(rows)
+    print(table.getvalue(), end="")
+    Path(a.out, "fits.txt").write_text(table.getvalue())  # for `lvenv report`
     worst = max(r.mismatch for r in rows)
     print(f"\nworst mismatch {100 * worst:.2f} % (goal < 3 %); plots in {a.out}/"
           if math.isfinite(worst) else "\nsome fit found no valid point")

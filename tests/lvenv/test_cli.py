@@ -13,7 +13,7 @@ def test_presets_command_prints_both_tables(capsys):
     assert "normal" in out and "heart_failure (3)" in out and "EF (%)" in out and "IVRT (ms)" in out
 
 
-@pytest.mark.parametrize("argv", [["--help"], *([c, "--help"] for c in ("presets", "simulate", "reach", "fit", "cohort", "train", "oracle", "bench")), ["-h"]])
+@pytest.mark.parametrize("argv", [["--help"], *([c, "--help"] for c in ("presets", "simulate", "reach", "fit", "cohort", "train", "oracle", "bench", "report")), ["-h"]])
 def test_help_of_every_command_works(argv, capsys):
     assert cli.main(argv) == cli.EXIT_OK
     out = capsys.readouterr().out
@@ -107,18 +107,25 @@ def test_cohort_command_skips_bad_rows_naming_their_lines_and_fits_the_rest(tmp_
     reports = tmp_path / "reports.csv"
     reports.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg,HR_bpm\n"
                        "A,58,290,85,124,78,64\nB,58,,85,124,78,64\nC,160,290,85,124,78,64\n")
-    argv = ["cohort", str(reports), "--out", str(tmp_path / "fits.csv"), "--budget", "8", "--candidates", "8"]
+    fits = tmp_path / "out" / "cohort" / "fits.csv"
+    argv = ["cohort", str(reports), "--out", str(fits), "--budget", "8", "--candidates", "8"]
     assert cli.main(argv + ["--json"]) == cli.EXIT_OK
     captured = capsys.readouterr()
     assert "line 3 (id B): ET_ms is missing; skipped" in captured.err and "line 4 (id C): EF_pct = 160" in captured.err
     summary = json.loads(captured.out)
     assert summary["fitted"] == 1 and [b["line"] for b in summary["bad_rows"]] == [3, 4]
-    header = (tmp_path / "fits.csv").read_text().splitlines()[0]
+    header = fits.read_text().splitlines()[0]
     assert header.startswith("id,tau2_s,Sa,R2_kPa_s_per_ml,R3_kPa_s_per_ml,C_ml_per_kPa,Cat_ml_per_kPa,mismatch,")
     no_hr = tmp_path / "no_hr.csv"
     no_hr.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg\nA,58,290,85,124,78\n")
     assert cli.main(["cohort", str(no_hr), "--out", str(tmp_path / "x.csv")]) == cli.EXIT_USAGE
     assert "lacks the required column(s) ['HR_bpm']" in capsys.readouterr().err
+    assert cli.main(["report", "--root", str(tmp_path / "out")]) == cli.EXIT_OK
+    report = (tmp_path / "out" / "report" / "report.md").read_text()
+    assert "| normal | " in report and "| heart_failure | " in report, "congruency from the shipped records"
+    assert f"--out {fits}" in report and "| 1 | ok 1 |" in report, "the cohort's summary with its command"
+    assert "Not run yet. Command: `make run`" in report and "Not run yet. Command: `lvenv bench lo" in report
+    assert (tmp_path / "out" / "report" / "cohort_fits.png").stat().st_size > 0
 
 
 def test_the_persistent_jit_cache_stores_compiled_programs_unless_turned_off(tmp_path):
