@@ -513,13 +513,17 @@ def bench_command(name, args) -> int:
 @app.command("report", epilog=_EPILOG)
 @click.option("--root", type=click.Path(file_okay=False), default="out", show_default=True, help="where the experiments left their results")
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="the report [default: ROOT/report/report.md]")
-def report_command(root, out_path) -> int:
+@click.option("--json", "as_json", is_flag=True, help="print the report's path as JSON")
+def report_command(root, out_path, as_json) -> int:
     """Rebuild one markdown report of every experiment (congruency, generalisation, multi-element,
     inverse problem, cohort, performance) from cached results; nothing is recomputed."""
     from optim.report import build_report
 
     path = build_report(root, out_path)
-    _out().print(f"report written to {path}")
+    if as_json:
+        _print_json({"report": str(path)})
+    else:
+        _out().print(f"report written to {path}")
     return EXIT_OK
 
 

@@ -17,12 +17,12 @@ from lvenv.simulation import Traces
 from lvenv.units import MS_PER_S, kpa_to_mmhg
 from lvenv.validation import InputError
 
-__all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure", "histogram_figure"]
+__all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure", "histogram_figure", "generalisation_figure"]
 
 SUFFIXES = (".png", ".pdf")
 
 
-def _figure(path: str | os.PathLike[str], ncols: int, width: float = 11.0):
+def _figure(path: str | os.PathLike[str], ncols: int, width: float = 11.0, nrows: int = 1, height: float = 4.0):
     path = Path(path)
     if path.suffix.lower() not in SUFFIXES:
         raise InputError(f"plot file {str(path)!r} must end in one of {SUFFIXES}")
@@ -31,8 +31,8 @@ def _figure(path: str | os.PathLike[str], ncols: int, width: float = 11.0):
     matplotlib.use("Agg", force=False)
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(width, 4.0))
-    return path, fig, fig.subplots(1, ncols)
+    fig = Figure(figsize=(width, height))
+    return path, fig, fig.subplots(nrows, ncols, squeeze=nrows == 1)
 
 
 def _save(fig, path: Path) -> Path:
@@ -139,4 +139,23 @@ def histogram_figure(values: np.ndarray, path: str | os.PathLike[str], xlabel: s
     path, fig, ax = _figure(path, 1, width=6.0)
     ax.hist(np.asarray(values, float), bins=40, color="C0")
     ax.set(xlabel=xlabel, ylabel="count", title=title)
+    return _save(fig, path)
+
+
+def generalisation_figure(rows: list[Mapping], path: str | os.PathLike[str], columns: int) -> Path:
+    """The paper's Fig. 7 panel: per scenario (``columns`` per heart) V and P_lv of the oracle
+    (solid; ``row["oracle"]`` with ``t``, ``V``, ``P_lv``) and the LO heart (dashed; ``row["lo"]``,
+    :class:`~lvenv.simulation.Traces`), titled with the scenario and its C."""
+    hearts = -(-len(rows) // columns)
+    path, fig, axes = _figure(path, columns, width=2.6 * columns, nrows=2 * hearts, height=4.4 * hearts)
+    for i, r in enumerate(rows):
+        h, j = divmod(i, columns)
+        for k, (key, unit) in enumerate((("V", "ml"), ("P_lv", "mmHg"))):
+            ax = axes[2 * h + k, j]
+            show = (lambda v: kpa_to_mmhg(np.asarray(v))) if key == "P_lv" else np.asarray
+            ax.plot(r["oracle"]["t"], show(r["oracle"][key]), "k-", lw=1.2)
+            ax.plot(r["lo"].t, show(getattr(r["lo"], key)), "C3--", lw=1.2)
+            ax.set_title(f"{r['heart']} {r['scenario']}\nC {100 * r['C']:.1f} %" if k == 0 else "", fontsize=8)
+            ax.set_ylabel(f"{key} ({unit})" if j == 0 else "", fontsize=8)
+            ax.tick_params(labelsize=7)
     return _save(fig, path)

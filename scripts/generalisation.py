@@ -4,7 +4,8 @@
 
 Maps frozen at the trained presets; one parameter at a time leaves its training value
 (`optim.studies.UNSEEN`), one beat under condition ②. Writes `generalisation.csv`,
-`generalisation.md` and `generalisation.png` (oracle solid, LO dashed) and prints the rows as JSON.
+`generalisation.md` and `generalisation.png` / `.pdf` (oracle solid, LO dashed; `lvenv.plots`) and
+prints the rows as JSON.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import sys
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from lvenv import presets  # noqa: E402
-from lvenv.units import kpa_to_mmhg  # noqa: E402
+from lvenv.plots import generalisation_figure  # noqa: E402
 from optim.studies import UNSEEN, generalisation  # noqa: E402
 
 FIELDS = ("heart", "scenario", "C", "max_rel_error_V", "max_rel_error_P", "lo_status", "oracle_key")
@@ -40,23 +41,8 @@ def main() -> None:
     lines = ["| heart | scenario | C (%) | max error V (%) | max error P (%) |", "|---|---|---|---|---|"]
     lines += [f"| {r['heart']} | {r['scenario']} | {100 * r['C']:.2f} | {100 * r['max_rel_error_V']:.1f} | {100 * r['max_rel_error_P']:.1f} |" for r in rows]
     (args.out / "generalisation.md").write_text("\n".join(lines) + "\n")
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2 * len(args.hearts), len(UNSEEN), figsize=(2.6 * len(UNSEEN), 4.4 * len(args.hearts)), squeeze=False)
-    for i, r in enumerate(rows):
-        h, j = divmod(i, len(UNSEEN))
-        for k, (key, unit, conv) in enumerate((("V", "ml", float), ("P_lv", "mmHg", kpa_to_mmhg))):
-            ax = axes[2 * h + k, j]
-            ax.plot(r["oracle"]["t"], conv(r["oracle"][key]) if key == "P_lv" else r["oracle"][key], "k-", lw=1.2)
-            ax.plot(r["lo"].t, conv(r["lo"].P_lv) if key == "P_lv" else r["lo"].V, "C3--", lw=1.2)
-            ax.set_title(f"{r['heart']} {r['scenario']}\nC {100 * r['C']:.1f} %" if k == 0 else "", fontsize=8)
-            ax.set_ylabel(f"{key} ({unit})" if j == 0 else "", fontsize=8)
-            ax.tick_params(labelsize=7)
-    fig.tight_layout()
-    fig.savefig(args.out / "generalisation.png", dpi=90)
+    for suffix in (".png", ".pdf"):
+        generalisation_figure(rows, args.out / f"generalisation{suffix}", columns=len(UNSEEN))
     print(json.dumps([{k: r[k] for k in FIELDS} for r in rows], indent=2))
 
 

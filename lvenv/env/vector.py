@@ -253,13 +253,14 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before replace_patients()")
         idx = np.asarray(members)
+        if idx.size == 0:
+            return
         if idx.ndim != 1 or idx.dtype.kind not in "iu" or np.any((idx < 0) | (idx >= self.num_envs)) or len(np.unique(idx)) != len(idx):
             raise InputError(f"members = {members!r} must be distinct member indices in [0, {self.num_envs - 1}]")
-        if isinstance(patients, (str, dict)) or len(patients) != len(idx):
-            raise InputError(f"replace_patients needs one patient per member: got {len(patients) if not isinstance(patients, (str, dict)) else 1} for the {len(idx)} members {idx.tolist()}")
+        given = 1 if isinstance(patients, (str, dict, Patient)) else len(patients)
+        if given != len(idx) or isinstance(patients, (str, dict, Patient)):
+            raise InputError(f"replace_patients needs one patient per member: got {given} for the {len(idx)} members {idx.tolist()}")
         new = resolve(list(patients), len(idx))
-        if not len(idx):
-            return
         for i, patient in zip(idx, new):
             self.patients[i] = patient
         rows = core.env_params(new)
