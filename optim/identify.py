@@ -24,6 +24,17 @@ state. With Δ = 3.84 (the 95 % point of χ² with one degree of freedom), each 
 
 Profiles are as good as the constrained fits: a fit stuck above its true minimum raises the
 profile at that grid point. Use a larger ``budget`` where profiles look ragged.
+
+:func:`posterior`: samples of p(θ | targets) ∝ exp(−χ²(θ)/2) · prior(θ), with the prior uniform
+in the unit cube of the identification bounds (log-uniform on log axes: weak, inside the physical
+bounds). Sampler: the affine-invariant ensemble sampler of ``emcee`` (Foreman-Mackey D et al.,
+PASP 125:306, 2013; stretch move), vectorised: each half-ensemble of proposals is one step of a
+vector env (:func:`optim.fit.make_env`), so the walkers run through the batched heart. This is
+the issue's fallback sampler; a gradient-based NUTS is not built (see README). Diagnostics:
+acceptance fraction, emcee's integrated autocorrelation time τ per parameter and the effective
+sample size (walkers × kept steps / τ), and the split R-hat of Gelman et al. (BDA3, §11.4)
+computed with the walkers as chains (walkers of an ensemble are not independent, so R-hat is
+optimistic; trust τ first). :func:`probability_lower` compares two patients' posteriors.
 """
 
 from __future__ import annotations
@@ -41,7 +52,8 @@ from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError, integer
 from optim.cohort import CohortOptions, Report, fit_reports
 
-__all__ = ["NOISE", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "sensitivity", "profile", "chi2"]
+__all__ = ["NOISE", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
+           "probability_lower", "chi2"]
 
 #: Standard deviation of each target's measurement error, internal units (ours, illustrative):
 #: EF 0.05, time intervals 10 ms, pressures 5 mmHg, volumes 5 ml.
@@ -194,3 +206,119 @@ def profile(
     evaluations = int(sum(r["evaluations"] for r in results.values()))
     fits = {name: [results[f"{name}[{g}]"]["parameters"] for g in range(grid)] for name in names}
     return Profiles(points, profiles, fits, chi2_min, interval, classes, sens, evaluations)
+
+
+@dataclasses.dataclass(frozen=True)
+class Posterior:
+    """Posterior samples by parameter name (physical units, burn-in removed, walkers × steps
+    flattened), their medians and 90 % credible intervals, and the diagnostics (module docstring)."""
+
+    samples: dict[str, np.ndarray]
+    median: dict[str, float]
+    interval_90: dict[str, tuple[float, float]]
+    acceptance: float
+    autocorr_time: dict[str, float]
+    ess: dict[str, float]
+    rhat: dict[str, float]
+    evaluations: int
+    failed: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in dataclasses.asdict(self).items() if k != "samples"}
+
+
+def _split_rhat(chains: np.ndarray) -> float:
+    """Split R-hat of (chains, draws) (Gelman et al., BDA3 §11.4)."""
+    half = chains.shape[1] // 2
+    split = np.concatenate([chains[:, :half], chains[:, half:2 * half]])
+    n = split.shape[1]
+    within = np.mean(np.var(split, axis=1, ddof=1))
+    between = n * np.var(np.mean(split, axis=1), ddof=1)
+    return float(np.sqrt(((n - 1) / n * within + between / n) / within)) if within > 0 else float("nan")
+
+
+def posterior(
+    patient: Patient,
+    *,
+    start: Mapping[str, float] | None = None,
+    walkers: int = 32,
+    steps: int = 400,
+    burn: int | None = None,
+    spread: float = 0.02,
+    seed: int = 0,
+    noise: Mapping[str, float] = NOISE,
+    steps_per_beat: int = 500,
+    max_beats: int = 60,
+) -> Posterior:
+    """Sample the posterior of :data:`DEFAULT_ACTION_PARAMS` for ``patient`` (module docstring).
+
+    ``start``: the walkers start in a ball of radius ``spread`` (unit-cube units) around it
+    (default: the patient's own values; a fit is better). ``burn``: steps dropped (default
+    ``steps // 2``). The env has ``walkers // 2`` members (emcee proposes half the ensemble at a time).
+    """
+    import emcee
+
+    from optim.fit import make_env
+
+    walkers, steps, seed = integer("walkers", walkers, 8), integer("steps", steps, 2), integer("seed", seed, 0)
+    if walkers % 2:
+        raise InputError(f"walkers = {walkers} must be even (emcee moves half the ensemble at a time)")
+    burn = steps // 2 if burn is None else integer("burn", burn, 0, steps - 2)
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
+    sigma = _sigma(patient, noise)
+    targets = np.array(list(patient.targets.values()))
+    columns = [list(patient.targets)]
+    venv = make_env(patient, walkers // 2, steps_per_beat, max_beats)
+    venv.reset(seed=seed)
+    action_map = venv.unwrapped.config.actions
+    counts = {"evaluations": 0, "failed": 0}
+
+    def log_prob(u: np.ndarray) -> np.ndarray:
+        u = np.atleast_2d(u)
+        inside = np.all((u >= 0.0) & (u <= 1.0), axis=1)
+        x = space.from_unit(np.clip(u, 0.0, 1.0))
+        out = np.full(len(u), -np.inf)
+        for start_row in range(0, len(u), walkers // 2):
+            block = slice(start_row, start_row + walkers // 2)
+            rows = x[block]
+            padded = np.concatenate([rows, np.repeat(rows[-1:], walkers // 2 - len(rows), axis=0)])
+            _, _, _, _, info = venv.step(action_map.to_action(padded))
+            obs = np.stack([np.asarray(info[k], float) for k in columns[0]], axis=1)[: len(rows)]
+            ok = np.isin(info["status"][: len(rows)], ("ok", "not_converged")) & np.all(np.isfinite(obs), axis=1)
+            value = -0.5 * np.sum(((obs - targets) / sigma) ** 2, axis=1)
+            out[block] = np.where(ok & inside[block], value, -np.inf)
+            counts["evaluations"] += len(rows)
+            counts["failed"] += int(np.sum(~ok))
+        return out
+
+    rng = np.random.default_rng(seed)
+    centre = space.to_unit(space.clip(np.array([float((start or {}).get(n, patient.heart.get(n))) for n in space.names])))
+    u0 = np.clip(centre + spread * rng.standard_normal((walkers, space.dimension)), 1e-6, 1 - 1e-6)
+    sampler = emcee.EnsembleSampler(walkers, space.dimension, log_prob, vectorize=True)
+    sampler.random_state = np.random.RandomState(seed).get_state()  # emcee's own generator, seeded
+    sampler.run_mcmc(u0, steps, progress=False)
+    venv.close()
+    chain = sampler.get_chain(discard=burn)  # (kept steps, walkers, k), unit cube
+    physical = space.from_unit(chain)
+    tau = sampler.get_autocorr_time(discard=burn, quiet=True)
+    kept = chain.shape[0] * walkers
+    samples = {n: physical[..., j].T.reshape(-1) for j, n in enumerate(space.names)}
+    return Posterior(
+        samples=samples,
+        median={n: float(np.median(v)) for n, v in samples.items()},
+        interval_90={n: (float(np.percentile(v, 5)), float(np.percentile(v, 95))) for n, v in samples.items()},
+        acceptance=float(np.mean(sampler.acceptance_fraction)),
+        autocorr_time={n: float(t) for n, t in zip(space.names, tau)},
+        ess={n: float(kept / t) for n, t in zip(space.names, tau)},
+        rhat={n: _split_rhat(chain[..., j].T) for j, n in enumerate(space.names)},
+        evaluations=counts["evaluations"],
+        failed=counts["failed"],
+    )
+
+
+def probability_lower(a: Posterior, b: Posterior, name: str) -> float:
+    """P(θ_a < θ_b) for parameter ``name`` of two patients with independent posteriors, over all
+    pairs of one sample of each (exact for the two sample sets)."""
+    other = np.sort(b.samples[name])
+    above = len(other) - np.searchsorted(other, a.samples[name], side="right")  # b-samples above each a-sample
+    return float(np.sum(above) / (len(a.samples[name]) * len(other)))

@@ -43,3 +43,25 @@ def test_each_profile_point_is_a_constrained_fit_with_the_chi2_it_reports():
     assert prof.chi2_min == pytest.approx(min(np.nanmin(v) for v in prof.chi2.values()))
     assert DELTA_95 == pytest.approx(3.84)
     assert prof.evaluations <= 6 * options.budget
+
+
+def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the_likelihood():
+    from optim.identify import NOISE, posterior, probability_lower
+
+    patient = builtin("normal")
+    wide = {k: 100 * v for k, v in NOISE.items()}
+    narrow = {k: v / 100 for k, v in NOISE.items()}
+    kwargs = dict(walkers=16, steps=30, burn=10, steps_per_beat=STEPS, max_beats=30, seed=3)
+    flat, sharp = posterior(patient, noise=wide, **kwargs), posterior(patient, noise=narrow, **kwargs)
+    for post in (flat, sharp):
+        assert post.evaluations == 16 * (30 + 1), "the initial ensemble plus one proposal per walker and step"
+        assert 0.0 <= post.acceptance <= 1.0 and 0 <= post.failed <= post.evaluations
+        for name, values in post.samples.items():
+            bound = ACTION_BOUNDS[name]
+            assert values.shape == (20 * 16,) and np.all((values >= bound.lo) & (values <= bound.hi))
+            lo, hi = post.interval_90[name]
+            assert lo <= post.median[name] <= hi
+    spread = lambda post, name: np.std(np.log(post.samples[name]))
+    assert spread(flat, "tau2") > 2 * spread(sharp, "tau2"), "a likelihood 10^4 times sharper keeps the walkers together"
+    assert probability_lower(flat, flat, "Sa") == pytest.approx(0.5, abs=0.1)
+    assert probability_lower(flat, sharp, "Sa") + probability_lower(sharp, flat, "Sa") == pytest.approx(1.0)
