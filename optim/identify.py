@@ -20,7 +20,8 @@ state. With Δ = 3.84 (the 95 % point of χ² with one degree of freedom), each 
   bounds (the 95 % interval is finite);
 * ``practically non-identifiable``: it rises above Δ on at most one side, but is not flat;
 * ``structurally non-identifiable``: it stays flat (max − min < :data:`FLAT` = 1) over the whole
-  bound, and the parameter has a component above 0.1 in a null direction of the sensitivity.
+  bound, and the parameter has a component above 0.1 in a null direction of the sensitivity;
+* ``no usable fit``: every constrained fit of it failed.
 
 Profiles are as good as the constrained fits: a fit stuck above its true minimum raises the
 profile at that grid point. Use a larger ``budget`` where profiles look ragged.
@@ -195,6 +196,9 @@ def profile(
     interval, classes = {}, {}
     for name in names:
         values = profiles[name]
+        if not np.isfinite(values).any():
+            interval[name], classes[name] = (None, None), "no usable fit"
+            continue
         interval[name] = _interval(points[name], values, chi2_min + DELTA_95)
         flat = np.nanmax(values) - np.nanmin(values) < FLAT
         if flat and sens is not None and sens.null_component(name) > _NULL_COMPONENT:
