@@ -28,8 +28,8 @@ profile at that grid point. Use a larger ``budget`` where profiles look ragged.
 
 :func:`posterior`: samples of p(θ | targets) ∝ exp(−χ²(θ)/2) · prior(θ), with the prior uniform
 in the unit cube of the identification bounds (log-uniform on log axes: weak, inside the physical
-bounds). Sampler: the affine-invariant ensemble sampler of ``emcee`` (Foreman-Mackey D et al.,
-PASP 125:306, 2013; stretch move), vectorised: each half-ensemble of proposals is one step of a
+bounds). Sampler: the ensemble sampler of ``emcee`` (Foreman-Mackey D et al., PASP 125:306,
+2013) with differential-evolution moves by default, vectorised: each half-ensemble of proposals is one step of a
 vector env (:func:`optim.fit.make_env`), so the walkers run through the batched heart. This is
 the issue's fallback sampler; a gradient-based NUTS is not built (see README). Diagnostics:
 acceptance fraction, emcee's integrated autocorrelation time τ per parameter and the effective
@@ -253,12 +253,17 @@ def posterior(
     noise: Mapping[str, float] = NOISE,
     steps_per_beat: int = 500,
     max_beats: int = 60,
+    moves: Any = "de",
 ) -> Posterior:
     """Sample the posterior of :data:`DEFAULT_ACTION_PARAMS` for ``patient`` (module docstring).
 
     ``start``: the walkers start in a ball of radius ``spread`` (unit-cube units) around it
     (default: the patient's own values; a fit is better). ``burn``: steps dropped (default
     ``steps // 2``). The env has ``walkers // 2`` members (emcee proposes half the ensemble at a time).
+    ``moves``: ``"de"`` (default: differential-evolution moves, 80 % ``DEMove`` and 20 %
+    ``DESnookerMove``, ter Braak & Vrugt 2008) or any ``moves`` emcee takes (``None``: its stretch
+    move). On the built-in N patient, 32 walkers × 1000 steps, "de" reached split R-hat 1.09–1.15
+    against 1.34–1.77 for the stretch move.
     """
     import emcee
 
@@ -298,7 +303,9 @@ def posterior(
     rng = np.random.default_rng(seed)
     centre = space.to_unit(space.clip(np.array([float((start or {}).get(n, patient.heart.get(n))) for n in space.names])))
     u0 = np.clip(centre + spread * rng.standard_normal((walkers, space.dimension)), 1e-6, 1 - 1e-6)
-    sampler = emcee.EnsembleSampler(walkers, space.dimension, log_prob, vectorize=True)
+    if moves == "de":
+        moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+    sampler = emcee.EnsembleSampler(walkers, space.dimension, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(seed).get_state()  # emcee's own generator, seeded
     sampler.run_mcmc(u0, steps, progress=False)
     venv.close()
