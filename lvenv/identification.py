@@ -130,6 +130,12 @@ class ParameterSpace:
                 return np.where(log, np.log(np.asarray(x, float) / safe_lo) / np.log(hi / safe_lo), (np.asarray(x, float) - lo) / (hi - lo))
         return jnp.where(log, jnp.log(x / safe_lo) / jnp.log(hi / safe_lo), (x - lo) / (hi - lo))
 
+    def rate(self, x):
+        """dx/du at physical values x (..., k): x ln(hi/lo) on log axes, hi − lo on linear ones
+        (the chain rule from physical derivatives to unit-cube ones)."""
+        xp, lo, hi, log, safe_lo = self._arrays(x)
+        return xp.where(log, x * xp.log(hi / safe_lo), hi - lo)
+
     def clip(self, x):
         """Physical values clipped into the box."""
         xp, lo, hi, _, _ = self._arrays(x)

@@ -109,9 +109,7 @@ def sensitivity(patient: Patient, parameters: Mapping[str, float] | None = None,
     if jac.status != "ok":
         raise InputError(f"the heart at these parameters has no usable steady state (status {jac.status!r})")
     x = np.array([float(heart.get(n)) for n in space.names])
-    lower, upper = np.array(space.lower), np.array(space.upper)
-    dx_du = np.where(space.log, x * np.log(upper / np.where(space.log, lower, 1.0)), upper - lower)
-    matrix = jac.values * dx_du[None, :] / _sigma(patient, noise)[:, None]
+    matrix = jac.values * space.rate(x)[None, :] / _sigma(patient, noise)[:, None]
     _, sv, vt = np.linalg.svd(matrix)
     rank = int(np.sum(sv > 1e-3 * sv[0]))
     null = [dict(zip(space.names, map(float, v))) for v in vt[rank:]]

@@ -82,9 +82,7 @@ class _Problem:
             below, above = BAND_KPA[0] - p_mean, p_mean - BAND_KPA[1]
             d = max(0.0, below, above)
             residual = np.append(self.sqrt_w * rel, np.sqrt(BAND_WEIGHT) * d / BAND_KPA[0])
-            dx_du = np.where(self.space.log, x * np.log(np.array(self.space.upper) / np.where(self.space.log, self.space.lower, 1.0)),
-                             np.array(self.space.upper) - np.array(self.space.lower))
-            d_metrics = jac.values * dx_du[None, :]  # (m, k) per unit-cube coordinate
+            d_metrics = jac.values * self.space.rate(x)[None, :]  # (m, k) per unit-cube coordinate
             rows = [self.sqrt_w[i] / self.t[i] * d_metrics[self.metrics.index(k)] for i, k in enumerate(self.targets)]
             d_band = d_metrics[self.metrics.index("P_ao_mean")] * (-1.0 if below > 0 else 1.0 if above > 0 else 0.0)
             jacobian = np.vstack([*rows, np.sqrt(BAND_WEIGHT) * d_band / BAND_KPA[0]])

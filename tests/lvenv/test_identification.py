@@ -52,3 +52,15 @@ def test_narrowed_bounds_and_parts():
 def test_bad_spaces_are_named(names, bounds, message):
     with pytest.raises(ValueError, match=message):
         ParameterSpace.for_names(names, bounds)
+
+
+def test_rate_is_the_derivative_of_the_unit_cube_map():
+    import numpy as np
+
+    from lvenv.identification import ParameterSpace
+
+    space = ParameterSpace.for_names()
+    u = np.random.default_rng(2).uniform(0.05, 0.95, (5, space.dimension))
+    step = 1e-6
+    numeric = (space.from_unit(u + step) - space.from_unit(u - step)) / (2 * step)
+    np.testing.assert_allclose(space.rate(space.from_unit(u)), numeric, rtol=1e-6)
