@@ -349,11 +349,12 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identif
 def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, as_json) -> int:
     """Fit every echo report of the CSV REPORTS (columns: id, EF_pct, ET_ms, IVRT_ms, SBP_mmHg,
     DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out."""
-    from optim.cohort import CohortOptions, read_reports, run_cohort
+    from optim.cohort import CohortOptions, run_cohort
 
     given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed}
     options = CohortOptions(**{k: v for k, v in given.items() if v is not None})
-    for bad in read_reports(reports).bad:
+
+    def report_bad(bad) -> None:
         _err.print(f"{reports}: line {bad.line}{f' (id {bad.id})' if bad.id else ''}: {bad.reason}; skipped", markup=False, soft_wrap=True)
     bar = None
     if _err.is_terminal:
@@ -371,7 +372,7 @@ def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, 
     if bar is not None:
         bar.start()
     try:
-        summary = run_cohort(reports, out_path, options, workers=workers, scheduler=scheduler, progress=progress)
+        summary = run_cohort(reports, out_path, options, workers=workers, scheduler=scheduler, progress=progress, on_bad=report_bad)
     finally:
         if bar is not None:
             bar.stop()

@@ -84,7 +84,7 @@ from optim.minimize import unit_bounds
 __all__ = [
     "FORM_FACTOR", "REQUIRED", "TARGETS", "GEOMETRY_COLUMNS", "CohortOptions", "Report", "BadRow",
     "Reports", "read_reports", "cuff_targets", "cuff_from_central", "parameter_column", "output_columns",
-    "fit_reports", "run_cohort", "summarise", "patient_seed", "CohortError",
+    "fit_reports", "run_cohort", "summarise", "distribution", "patient_seed", "CohortError",
 ]
 
 #: Fraction of the pulse pressure above DBP at which the mean pressure lies (Meaney et al. 2000).
@@ -511,6 +511,7 @@ def run_cohort(
     workers: int = 1,
     scheduler: str | None = None,
     progress: Callable[[int, int, dict[str, Any] | None], None] | None = None,
+    on_bad: Callable[[BadRow], None] | None = None,
 ) -> dict[str, Any]:
     """Fit a report CSV into ``out_path`` (module docstring); resumable.
 
@@ -520,7 +521,8 @@ def run_cohort(
     (:class:`CohortError`). With ``scheduler`` (a Dask scheduler address) or ``workers`` > 1 (a
     Dask ``LocalCluster`` of that many single-threaded processes), the remaining reports are cut
     into chunks of ``slots`` patients fitted by the workers; the fits are the same.
-    ``progress(done, total, result)`` is called at the start (result None) and per patient.
+    ``progress(done, total, result)`` is called at the start (result None) and per patient;
+    ``on_bad(row)`` once per bad row, before any fitting.
 
     Returns a summary: counts, bad rows, wall time, and the mismatch distribution of this file.
     """
@@ -529,6 +531,9 @@ def run_cohort(
     start = time.perf_counter()
     reports_path, out = Path(reports_path), Path(out_path)
     parsed = read_reports(reports_path)
+    if on_bad is not None:
+        for bad in parsed.bad:
+            on_bad(bad)
     columns = output_columns(parsed.extra_columns)
     meta_path = out.with_name(out.name + ".json")
     meta = _meta(reports_path, options)
@@ -593,8 +598,14 @@ def summarise(out_path: str | os.PathLike[str]) -> dict[str, Any]:
     mismatch = np.array([float(r["mismatch"]) if r["mismatch"] else np.inf for r in rows])
     status = collections.Counter(r["status"] for r in rows)
     finite = mismatch[np.isfinite(mismatch)]
-    stats = {}
-    if len(mismatch):
-        stats = {"median": float(np.median(mismatch)), "p95": float(np.percentile(mismatch, 95)), "max": float(np.max(mismatch))}
-    return {"fitted": len(rows), "status": dict(status), "mismatch": stats, "usable": int(len(finite))}
+    return {"fitted": len(rows), "status": dict(status), "mismatch": distribution(mismatch), "usable": int(len(finite))}
+
+
+def distribution(mismatch: Sequence[float]) -> dict[str, float]:
+    """Median, 95th percentile and maximum of mismatches (fractions; a failed fit counts as inf);
+    empty for no fits."""
+    m = np.asarray(mismatch, float)
+    if not len(m):
+        return {}
+    return {"median": float(np.median(m)), "p95": float(np.percentile(m, 95)), "max": float(np.max(m))}
 

@@ -274,7 +274,7 @@ def posterior(
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     sigma = _sigma(patient, noise)
     targets = np.array(list(patient.targets.values()))
-    columns = [list(patient.targets)]
+    target_names = list(patient.targets)
     venv = make_env(patient, walkers // 2, steps_per_beat, max_beats)
     venv.reset(seed=seed)
     action_map = venv.unwrapped.config.actions
@@ -290,7 +290,7 @@ def posterior(
             rows = x[block]
             padded = np.concatenate([rows, np.repeat(rows[-1:], walkers // 2 - len(rows), axis=0)])
             _, _, _, _, info = venv.step(action_map.to_action(padded))
-            obs = np.stack([np.asarray(info[k], float) for k in columns[0]], axis=1)[: len(rows)]
+            obs = np.stack([np.asarray(info[k], float) for k in target_names], axis=1)[: len(rows)]
             ok = np.isin(info["status"][: len(rows)], ("ok", "not_converged")) & np.all(np.isfinite(obs), axis=1)
             value = -0.5 * np.sum(((obs - targets) / sigma) ** 2, axis=1)
             out[block] = np.where(ok & inside[block], value, -np.inf)

@@ -25,15 +25,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from optim.cohort import CohortOptions, fit_reports, read_reports  # noqa: E402
+from optim.cohort import CohortOptions, distribution, fit_reports, read_reports  # noqa: E402
 from optim.fit import make_env, warm_up  # noqa: E402
 from optim.minimize import minimize  # noqa: E402
 from scripts import make_cohort  # noqa: E402
-
-
-def _stats(mismatch: list[float]) -> dict[str, float]:
-    m = np.asarray(mismatch, float)
-    return {"median": float(np.median(m)), "p95": float(np.percentile(m, 95)), "max": float(np.max(m))}
 
 
 class _BestMismatch(gymnasium.vector.VectorWrapper):
@@ -63,14 +58,14 @@ def baseline(reports, options: CohortOptions) -> dict:
     wall = time.perf_counter() - start
     venv.close()
     return {"wall_time_s": wall, "compile_time_s": compile_time, "patients_per_s": len(reports) / wall,
-            "mismatch": _stats(mismatch), "median_evaluations": float(np.median(evaluations))}
+            "mismatch": distribution(mismatch), "median_evaluations": float(np.median(evaluations))}
 
 
 def cohort(reports, options: CohortOptions) -> dict:
     start = time.perf_counter()
     results = fit_reports(reports, options)
     wall = time.perf_counter() - start
-    return {"wall_time_s": wall, "patients_per_s": len(reports) / wall, "mismatch": _stats([r["mismatch"] for r in results]),
+    return {"wall_time_s": wall, "patients_per_s": len(reports) / wall, "mismatch": distribution([r["mismatch"] for r in results]),
             "median_evaluations": float(np.median([r["evaluations"] for r in results])), "status": sorted({r["status"] for r in results})}
 
 
