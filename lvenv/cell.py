@@ -76,18 +76,25 @@ def beta0(n0):
     return jnp.where(n0 <= H_KNEE, 1.0 / (_H_SHIFT - 2.0 * n0), 1.0 / (1.0 - jnp.minimum(n0, 0.999)))
 
 
-def calcium(t, p: CellParams):
-    """[Ca](t) in µM, ``t`` the time since the beat's onset (s), bi-exponential with peak Cmax."""
+def transient_norm(p: CellParams):
+    """Peak value of the unnormalised bi-exponential exp(−t/τ2) − exp(−t/τ1) (dimensionless)."""
     t_peak = p.tau1 * p.tau2 / (p.tau2 - p.tau1) * jnp.log(p.tau2 / p.tau1)
-    norm = jnp.exp(-t_peak / p.tau2) - jnp.exp(-t_peak / p.tau1)
+    return jnp.exp(-t_peak / p.tau2) - jnp.exp(-t_peak / p.tau1)
+
+
+def calcium(t, p: CellParams, norm=None):
+    """[Ca](t) in µM, ``t`` the time since the beat's onset (s), bi-exponential with peak Cmax.
+
+    ``norm``: :func:`transient_norm` of ``p``, if already computed (hoisted out of step loops).
+    """
+    norm = transient_norm(p) if norm is None else norm
     shape = (jnp.exp(-t / p.tau2) - jnp.exp(-t / p.tau1)) / norm
     return p.Cdia + (p.Cmax - p.Cdia) * shape
 
 
-def calcium_rate(t, p: CellParams):
+def calcium_rate(t, p: CellParams, norm=None):
     """d[Ca]/dt (µM/s) of :func:`calcium`."""
-    t_peak = p.tau1 * p.tau2 / (p.tau2 - p.tau1) * jnp.log(p.tau2 / p.tau1)
-    norm = jnp.exp(-t_peak / p.tau2) - jnp.exp(-t_peak / p.tau1)
+    norm = transient_norm(p) if norm is None else norm
     return (p.Cmax - p.Cdia) * (jnp.exp(-t / p.tau1) / p.tau1 - jnp.exp(-t / p.tau2) / p.tau2) / norm
 
 

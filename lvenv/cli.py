@@ -262,7 +262,10 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--budget", type=click.IntRange(min=16), default=480, show_default=True, help="steady-state simulations, at most")
 @click.option("--num-envs", type=click.IntRange(min=1), default=16, show_default=True, help="members of the vector env (points per round)")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
-@click.option("--steps-per-beat", type=click.IntRange(min=10), default=500, show_default=True, help="ROS2 steps per cardiac cycle")
+@click.option("--steps-per-beat", type=click.IntRange(min=10), default=500, show_default=True,
+              help="ROS2 steps per cardiac cycle of the fixed-step simulations (lm, the fitted beat, --scheme fixed)")
+@click.option("--scheme", type=click.Choice(("adaptive", "fixed")), default="adaptive", show_default=True,
+              help="integration scheme of the optimisers' env: step-size control, or --steps-per-beat equal steps")
 @click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
 @click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
@@ -270,7 +273,7 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--convergence", "convergence_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
               help="write the best mismatch against evaluations (.png or .pdf)")
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
-def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identifiability, fidelity, fidelity_mesh, plot_path, convergence_path, as_json) -> int:
+def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, identifiability, fidelity, fidelity_mesh, plot_path, convergence_path, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets."""
     from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
     from optim.minimize import minimize
@@ -283,7 +286,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, identif
         with _working("fitting by least squares"):
             res = fit_lm(record, budget=budget, seed=seed, steps_per_beat=steps_per_beat)
     else:
-        venv = make_env(record, num_envs, steps_per_beat)
+        venv = make_env(record, num_envs, steps_per_beat, scheme=scheme)
         with _working("compiling the model"):
             compile_time = warm_up(venv)
         res = minimize(venv, method, budget=budget, seed=seed, progress=_err.is_terminal, **DEFAULT_OPTIONS.get(method, {}))

@@ -32,14 +32,15 @@ from lvenv.params import CellParams, LOParams
 __all__ = ["stretch", "stretch_rate", "passive_pressure", "passive_pressure_slope", "lv_pressure", "passive_volume", "calcium", "calcium_rate"]
 
 
-def calcium(t, lo: LOParams, p: CellParams):
-    """LO calcium input (µM) at time ``t`` ≥ 0 since the beat's onset: the cell's transient delayed by ``lo.delay`` (s)."""
-    return jnp.where(t >= lo.delay, cell.calcium(jnp.maximum(t - lo.delay, 0.0), p), p.Cdia)
+def calcium(t, lo: LOParams, p: CellParams, norm=None):
+    """LO calcium input (µM) at time ``t`` ≥ 0 since the beat's onset: the cell's transient delayed
+    by ``lo.delay`` (s). ``norm``: :func:`lvenv.cell.transient_norm`, if already computed."""
+    return jnp.where(t >= lo.delay, cell.calcium(jnp.maximum(t - lo.delay, 0.0), p, norm), p.Cdia)
 
 
-def calcium_rate(t, lo: LOParams, p: CellParams):
+def calcium_rate(t, lo: LOParams, p: CellParams, norm=None):
     """d/dt of :func:`calcium` (µM/s)."""
-    return jnp.where(t >= lo.delay, cell.calcium_rate(jnp.maximum(t - lo.delay, 0.0), p), 0.0)
+    return jnp.where(t >= lo.delay, cell.calcium_rate(jnp.maximum(t - lo.delay, 0.0), p, norm), 0.0)
 
 
 def stretch(v, v0, lo: LOParams):

@@ -83,7 +83,7 @@ def ad_jacobian(f: Callable, u, y: jax.Array) -> tuple[jax.Array, list[list]]:
     return f0, [[columns[j, i] for j in range(n)] for i in range(n)]
 
 
-def ros2_step(f: Callable, y: jax.Array, h: jax.Array, u0, u1, du0=None, jacobian: Callable | None = None) -> jax.Array:
+def ros2_step(f: Callable, y: jax.Array, h: jax.Array, u0, u1, du0=None, jacobian: Callable | None = None, error: bool = False):
     """One ROS2 step of ``dy/dt = f(u(t), y)``, ``y`` of shape ``(n, *batch)``, ``h`` per member.
 
     ``u0`` and ``u1`` are the exogenous input (for the LO heart, [Ca]) at the start and the end
@@ -93,6 +93,10 @@ def ros2_step(f: Callable, y: jax.Array, h: jax.Array, u0, u1, du0=None, jacobia
     whose structural zeros are the Python float 0.0 (skipped by the LU); it also receives the
     explicit predictor increment h·f(u0, y) as ``lookahead`` (any matrix keeps order 2).
     Default: forward-mode AD (:func:`ad_jacobian`).
+
+    ``error=True`` returns ``(y_{n+1}, e)`` with the embedded local error estimate
+    e = y_{n+1} − (y_n + h k1) = h/2 (k1 + k2): the difference to the first-order solution
+    y_n + h k1 (linearly implicit Euler), O(h²), what step-size control (:mod:`lvenv.simulation`) uses.
     """
     n = y.shape[0]
     if jacobian is None:
@@ -110,4 +114,5 @@ def ros2_step(f: Callable, y: jax.Array, h: jax.Array, u0, u1, du0=None, jacobia
     k1 = jnp.stack(lu_solve(lu, [f0[i] + forcing[i] for i in range(n)]))
     f1 = f(u1, y + h * k1)
     k2 = jnp.stack(lu_solve(lu, [f1[i] - 2.0 * k1[i] - forcing[i] for i in range(n)]))
-    return y + (1.5 * h) * k1 + (0.5 * h) * k2
+    y1 = y + (1.5 * h) * k1 + (0.5 * h) * k2
+    return (y1, (0.5 * h) * (k1 + k2)) if error else y1

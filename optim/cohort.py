@@ -74,9 +74,10 @@ from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, Parameter
 from lvenv.metrics import METRICS, OBS_NAMES, Metric
 from lvenv.params import Heart, ranges
 from lvenv.patients import Patient
+from lvenv.simulation import SCHEMES
 from lvenv.status import EF_MIN, is_usable
 from lvenv.units import kpa_to_mmhg, mmhg_to_kpa
-from lvenv.validation import InputError, integer, real
+from lvenv.validation import InputError, choice, integer, real
 from optim.cmaes import CmaEs, CmaOptions
 from optim.fit import make_env
 from optim.minimize import unit_bounds
@@ -272,7 +273,8 @@ class CohortOptions:
     budget: int = 640  # evaluations per patient, at most (confirmation not counted)
     stop_mismatch: float = 0.01  # a patient's search stops below this mismatch (fraction)
     sigma0: float = 0.25  # CMA-ES initial step, unit-cube units
-    steps_per_beat: int = 500
+    steps_per_beat: int = 500  # of the fixed scheme only
+    scheme: str = "adaptive"  # the env's integration scheme (lvenv.simulation.SCHEMES)
     max_beats: int = 12  # beats per member and env step
     confirm_steps: int = 10  # env steps to confirm the best point's steady state, at most
     rtol: float = 1e-4  # steady-state criterion (lvenv.simulate)
@@ -285,6 +287,7 @@ class CohortOptions:
         real("stop_mismatch", self.stop_mismatch, 0.0, 1.0)
         real("sigma0", self.sigma0, 0.0, 1.0, lo_open=True)
         integer("steps_per_beat", self.steps_per_beat, 10)
+        choice("scheme", self.scheme, SCHEMES)
         integer("max_beats", self.max_beats, 1)
         integer("confirm_steps", self.confirm_steps, 1)
         real("rtol", self.rtol, 0.0, 1.0, lo_open=True)
@@ -402,7 +405,7 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
     lam = options.candidates
     slots = min(options.slots, len(reports))
     queue = collections.deque(reports)
-    venv = make_env([r.patient for r in reports[:slots] for _ in range(lam)], slots * lam, options.steps_per_beat, options.max_beats, options.rtol)
+    venv = make_env([r.patient for r in reports[:slots] for _ in range(lam)], slots * lam, options.steps_per_beat, options.max_beats, options.rtol, options.scheme)
     env = venv.unwrapped
     env.reset(seed=0)
     fits: list[_Fit | None] = [None] * slots

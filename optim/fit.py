@@ -10,12 +10,11 @@ method's observation / target ratio per target.
 observations as a patient's targets, fits them back, and reports per parameter how far the fits
 land from the truth (identifiability).
 
-Defaults (ours) are sized for the README main job on a 2-core CPU: num_envs = 16,
-steps_per_beat = 500 (h = 2 ms at 60 bpm), a budget of 480 evaluations (30 env steps), and
-per-method options in `DEFAULT_OPTIONS`. At the fitted N and HF parameters, 500 against 1000 steps
-per beat moves EF, ET, pulse and mean pressure by < 0.2 % but IVRT by 1–2 % (its two valve events
-are located by linear interpolation between 2 ms steps): pass steps_per_beat=1000 where IVRT
-must be exact to the model at 1 ms.
+Defaults (ours) are sized for the README main job on a 2-core CPU: num_envs = 16, the env's
+adaptive integration scheme (per-member step-size control, within the accuracy specification
+against Radau: EF 0.5 points, phase durations 2 ms, pressures 1 %), a budget of 480 evaluations
+(30 env steps), and per-method options in `DEFAULT_OPTIONS`. ``steps_per_beat`` (500, h = 2 ms
+at 60 bpm) sets the fixed-step simulations that draw the PV loops and synthetic truths.
 """
 
 from __future__ import annotations
@@ -60,11 +59,14 @@ class FitRow(MinimizeResult):
 
 
 def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60,
-             rtol: float = 1e-4) -> Any:
-    """A vector env set up for optimisation (autoreset Disabled, no tolerance, no truncation)."""
+             rtol: float = 1e-4, scheme: str = "adaptive") -> Any:
+    """A vector env set up for optimisation (autoreset Disabled, no tolerance, no truncation).
+
+    ``scheme``: the env's integration scheme (:data:`lvenv.simulation.SCHEMES`); ``steps_per_beat``
+    applies to ``scheme="fixed"`` only."""
     return gymnasium.make_vec(
         "lvenv/LVHeart-v0", num_envs=num_envs, patient=patient, max_episode_steps=None, tolerance=0.0,
-        autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol,
+        autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme,
     )
 
 
@@ -221,10 +223,10 @@ class RecoveryReport:
     wall_time: float
 
 
-def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: Sequence[str],
-                 steps_per_beat: int) -> tuple[np.ndarray, np.ndarray]:
+def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Random parameter sets (log-uniform on log axes) whose hearts simulate cleanly with EF in
-    [0.3, 0.75] and mean aortic pressure inside the 80–120 mmHg band (so an exact fit exists)."""
+    [0.3, 0.75] and mean aortic pressure inside the 80–120 mmHg band (so an exact fit exists),
+    simulated with the env's scheme (adaptive, Anderson-accelerated) that will fit them."""
     from lvenv.env.core import BAND_KPA
 
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
@@ -232,7 +234,7 @@ def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: 
     while len(truths) < n_sets:
         x = space.from_unit(rng.random((64, space.dimension)))
         sim = lvenv.simulate([base.heart.replace(**dict(zip(space.names, map(float, xi)))) for xi in x],
-                             steps_per_beat=steps_per_beat, max_beats=60, traces=False)
+                             scheme="adaptive", acceleration="anderson", max_beats=60, traces=False)
         m = sim.metrics
         good = np.asarray(sim.status) == "ok"
         good &= (m["EF"] > 0.3) & (m["EF"] < 0.75) & (m["P_ao_mean"] > BAND_KPA[0]) & (m["P_ao_mean"] < BAND_KPA[1])
@@ -263,7 +265,7 @@ def synthetic_recovery(
     start = time.perf_counter()
     base_patient = _patient(base)
     rng = np.random.default_rng(seed)
-    truths, obs = _draw_truths(n_sets, rng, base_patient, targets, steps_per_beat)
+    truths, obs = _draw_truths(n_sets, rng, base_patient, targets)
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     fits, mismatch, max_error = [], [], []
     opts = {**DEFAULT_OPTIONS.get(method, {}), **options}

@@ -1,13 +1,17 @@
-"""Benchmark the batched LO heart against the scipy Radau reference in the same run (JSON out).
+"""Benchmark the batched LO heart's integration schemes against the scipy Radau reference, all in the same run (JSON out).
 
-    python scripts/bench_lo.py                       # CPU: batches 1 … 16384
+    python scripts/bench_lo.py                       # CPU: batches 256 … 4096, fixed 1000 / 500 steps and adaptive
     python scripts/bench_lo.py --batches 1024 65536 262144 1048576 --dtype float32   # GPU
 
-Reports beats/s (median of --repeats timed runs after one compile run) per batch size, both
-end to end through ``lvenv.simulate`` (validation, V0, initial state, transfers included) and for
-the jitted batch core alone on device-resident inputs (what the vector env steps), the
-speed-up over a scipy ``solve_ivp(Radau, rtol=1e-8)`` loop on the same equations, and the
-metrics error of the batched model against that reference.
+A configuration is ``fixed:STEPS`` (equal ROS2 steps per beat; ``fixed:1000`` is the old
+default) or ``adaptive:TOL`` (per-member step-size control at relative tolerance TOL).
+Per configuration: its metrics error against a scipy ``solve_ivp(Radau, rtol=1e-8)`` loop on the
+same equations (``--reference-members`` random hearts; the accuracy specification is EF within
+0.5 points, phase durations within 2 ms, pressures within 1 %), ROS2 steps per beat, and per
+batch size beats/s (median of --repeats timed runs after one compile run), both end to end
+through ``lvenv.simulate`` (validation, V0, initial state, transfers included) and for the jitted
+batch core alone on device-resident inputs (what the vector env steps); ``ratio_vs_first`` is
+the core's beats/s over the first configuration's at the same batch.
 """
 
 from __future__ import annotations
@@ -43,8 +47,14 @@ def cohort(n: int, seed: int = 0) -> lvenv.Heart:
     return tiled.replace(tau2=rng.uniform(0.09, 0.25, n), Sa=rng.uniform(0.8, 1.5, n), R3=rng.uniform(0.12, 0.4, n), C=rng.uniform(6.0, 25.0, n), Cat=rng.uniform(1.5, 10.0, n))
 
 
-def time_batch(batch, steps, dtype, repeats):
-    run = lambda: lvenv.simulate(batch, beats=BEATS, steps_per_beat=steps, traces=False, dtype=dtype)
+def settings(config: str) -> dict:
+    """``fixed:STEPS`` or ``adaptive:TOL`` as keyword arguments of ``lvenv.simulate``."""
+    scheme, value = config.split(":")
+    return {"scheme": "fixed", "steps_per_beat": int(value)} if scheme == "fixed" else {"scheme": scheme, "step_tol": float(value)}
+
+
+def time_batch(batch, config, dtype, repeats):
+    run = lambda: lvenv.simulate(batch, beats=BEATS, traces=False, dtype=dtype, **settings(config))
     t0 = time.perf_counter()
     first = run()
     compile_s = time.perf_counter() - t0
@@ -57,11 +67,13 @@ def time_batch(batch, steps, dtype, repeats):
     return first, compile_s, times
 
 
-def time_core(batch, steps, dtype, repeats):
+def time_core(batch, config, dtype, repeats):
     """The jitted batch core alone, on device-resident, pre-validated inputs (the env's hot path)."""
     p = model.model_params(batch)
     (p_dev, y_dev), _ = shard_members((jax.tree.map(lambda x: np.asarray(x, dtype), p), np.asarray(model.initial_state(p), dtype)), len(p.v0))
-    run = lambda: jax.block_until_ready(run_beats_jit(p_dev, y_dev, jnp.asarray(1e-4, dtype), steps=steps, max_beats=BEATS, steady=False, record=False))
+    kw = settings(config)
+    run = lambda: jax.block_until_ready(run_beats_jit(p_dev, y_dev, jnp.asarray(1e-4, dtype), steps=kw.get("steps_per_beat", 1000), max_beats=BEATS,
+                                                      steady=False, record=False, scheme=kw["scheme"], step_tol=kw.get("step_tol", 2e-3)))
     run()
     times = []
     for _ in range(repeats):
@@ -71,8 +83,8 @@ def time_core(batch, steps, dtype, repeats):
     return times
 
 
-def accuracy(hearts, steps, dtype):
-    res = lvenv.simulate(hearts, beats=BEATS, steps_per_beat=steps, dtype=dtype)
+def accuracy(hearts, config, dtype):
+    res = lvenv.simulate(hearts, beats=BEATS, traces=False, dtype=dtype, **settings(config))
     t0 = time.perf_counter()
     refs = [simulate_reference(h, cavity_volume(h.geometry), beats=BEATS)[0] for h in hearts]
     radau_s = time.perf_counter() - t0
@@ -83,16 +95,16 @@ def accuracy(hearts, steps, dtype):
         err["timing_abs_s"] = max(err["timing_abs_s"], *(abs(m[k] - ref[k]) for k in ("IVCT", "ET", "IVRT")))
         err["pressure_rel"] = max(err["pressure_rel"], *(abs(m[k] / ref[k] - 1) for k in ("P_lv_peak", "P_ao_sys", "P_ao_dia", "P_ao_mean")))
         err["volume_rel"] = max(err["volume_rel"], *(abs(m[k] / ref[k] - 1) for k in ("EDV", "ESV")))
-    return err, len(hearts) * BEATS / radau_s
+    return err, len(hearts) * BEATS / radau_s, float(np.median(res.steps)) / BEATS
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--batches", type=int, nargs="+", default=[1, 16, 256, 1024, 4096, 16384])
-    parser.add_argument("--steps", type=int, nargs="+", default=[1000, 500], help="ROS2 steps per beat (1000 is the default)")
+    parser.add_argument("--batches", type=int, nargs="+", default=[256, 1024, 4096])
+    parser.add_argument("--configs", nargs="+", default=["fixed:1000", "fixed:500", "adaptive:0.002"], help="fixed:STEPS or adaptive:TOL; the first is the baseline")
     parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--reference-members", type=int, default=4, help="members integrated by the Radau baseline")
+    parser.add_argument("--reference-members", type=int, default=16, help="members integrated by the Radau baseline")
     args = parser.parse_args()
     dtype = {"float64": jnp.float64, "float32": jnp.float32}[args.dtype]
     out = {
@@ -101,20 +113,23 @@ def main() -> None:
     }
     ref_batch = cohort(args.reference_members, seed=1)
     ref_hearts = [jax.tree.map(lambda x, i=i: float(x[i]), ref_batch) for i in range(args.reference_members)]
-    for steps in args.steps:
-        err, radau_beats_per_s = accuracy(ref_hearts, steps, dtype)
-        entry = {"steps_per_beat": steps, "error_vs_radau": err, "radau_beats_per_s": radau_beats_per_s, "batches": []}
+    first: dict[int, float] = {}
+    for config in args.configs:
+        err, radau_beats_per_s, steps = accuracy(ref_hearts, config, dtype)
+        entry = {"config": config, "error_vs_radau": err, "steps_per_beat_median": steps, "radau_beats_per_s": radau_beats_per_s, "batches": []}
         for n in args.batches:
             batch = cohort(n)
-            _, compile_s, times = time_batch(batch, steps, dtype, args.repeats)
-            core_times = time_core(batch, steps, dtype, args.repeats)
+            _, compile_s, times = time_batch(batch, config, dtype, args.repeats)
+            core_times = time_core(batch, config, dtype, args.repeats)
             bps = n * BEATS / float(np.median(times))
             core_bps = n * BEATS / float(np.median(core_times))
+            first.setdefault(n, core_bps)
             entry["batches"].append({
                 "batch": n, "beats_per_s_median": bps, "speedup_vs_radau": bps / radau_beats_per_s, "times_s": times, "first_call_s": compile_s,
-                "core_beats_per_s_median": core_bps, "core_times_s": core_times,
+                "core_beats_per_s_median": core_bps, "core_times_s": core_times, "ratio_vs_first": core_bps / first[n],
             })
-            print(f"# steps {steps} batch {n}: simulate() {bps:,.0f} beats/s, jitted core {core_bps:,.0f} beats/s", file=sys.stderr, flush=True)
+            print(f"# {config} batch {n}: simulate() {bps:,.0f} beats/s, jitted core {core_bps:,.0f} beats/s (x{core_bps / first[n]:.2f}); "
+                  f"error EF {100 * err['EF_abs']:.2f} pt, timing {1e3 * err['timing_abs_s']:.2f} ms, pressure {100 * err['pressure_rel']:.2f} %", file=sys.stderr, flush=True)
         out["runs"].append(entry)
     print(json.dumps(out, indent=2))
 

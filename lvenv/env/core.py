@@ -7,7 +7,8 @@ exposes them per member for JAX code that jits and vmaps the heart itself. There
 loop over members and no host sync inside.
 
 One step evaluates one parameter set per member to steady state with the LO heart
-(:func:`lvenv.simulation.run_beats`), **warm-started** from that member's state at the end of its
+(:func:`lvenv.simulation.run_beats_parallel`; by default with the adaptive scheme and Anderson
+acceleration), **warm-started** from that member's state at the end of its
 previous step. In the closed loop the warm start is first shifted to the blood volume a cold
 start with the new parameters would have (P_c and P_at move by ΔV / (C + Cat)), so the result
 does not depend on the order in which parameter sets were visited, only the number of beats
@@ -41,7 +42,7 @@ from lvenv.env.spaces import ActionMap
 from lvenv.metrics import OBS_NAMES
 from lvenv.model import IDX_PAT, IDX_PC, IDX_V, ModelParams
 from lvenv.params import stack
-from lvenv.simulation import run_beats
+from lvenv.simulation import DEFAULT_STEP_TOL, run_beats_parallel
 from lvenv.status import INVALID_ACTION, is_usable
 from lvenv.units import mmhg_to_kpa
 
@@ -80,6 +81,9 @@ class Config:
     steps_per_beat: int = 1000
     max_beats: int = 60
     rtol: float = 1e-4
+    scheme: str = "adaptive"
+    step_tol: float = DEFAULT_STEP_TOL
+    acceleration: str = "anderson"
     tolerance: float = 1e-3
     max_episode_steps: int | None = None
     obs_noise: tuple[float, ...] | None = None  # relative std of the measurement noise per observation
@@ -128,7 +132,8 @@ def _noisy(obs: jax.Array, key: jax.Array, config: Config) -> jax.Array:
 
 
 def _evaluate(heart: ModelParams, y0: jax.Array, config: Config):
-    return run_beats(heart, y0, config.rtol, steps=config.steps_per_beat, max_beats=config.max_beats, steady=True, record=False)
+    return run_beats_parallel(heart, y0, config.rtol, steps=config.steps_per_beat, max_beats=config.max_beats, steady=True, record=False,
+                              scheme=config.scheme, step_tol=config.step_tol, acceleration=config.acceleration)
 
 
 def reset(key: jax.Array, params: EnvParams, config: Config):
@@ -140,7 +145,7 @@ def reset(key: jax.Array, params: EnvParams, config: Config):
     metrics = _observe(out)
     n = metrics.shape[0]
     state = EnvState(y=out["y"], steps=jnp.zeros((n,), jnp.int32), needs_reset=jnp.zeros((n,), bool))
-    info = {"metrics": metrics, "status": out["status"], "converged": out["converged"], "beats": out["beats"], "parameters": config.actions.current(params.heart)}
+    info = {"metrics": metrics, "status": out["status"], "converged": out["converged"], "beats": out["beats"], "steps": out["steps"], "parameters": config.actions.current(params.heart)}
     return state, _noisy(_observation(metrics, is_usable(out["status"])), key, config), info
 
 
@@ -175,6 +180,7 @@ def step(key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams, 
         "status": status,
         "converged": out["converged"],
         "beats": out["beats"],
+        "steps": out["steps"],
         "mismatch": jnp.where(sim_ok & finite, mismatch, jnp.inf),
         "clipped": clipped & ~fresh,
         "reset": fresh,

@@ -27,7 +27,7 @@ from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.metrics import OBS_NAMES
 from lvenv.model import N_STATES
 from lvenv.patients import Patient, resolve
-from lvenv.simulation import check_settings
+from lvenv.simulation import DEFAULT_STEP_TOL, check_settings
 from lvenv.validation import InputError, choice, integer, real, real_array
 
 __all__ = ["LVHeartVectorEnv", "TRACES", "STATE_FIELDS"]
@@ -84,7 +84,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         tolerance: terminate when the mean relative mismatch falls below it (≥ 0).
         obs_noise: relative standard deviation of Gaussian measurement noise (scalar or per
             observation, ≥ 0); drawn from the env's own key.
-        steps_per_beat, max_beats, rtol: LO-heart integration (:func:`lvenv.simulate`).
+        steps_per_beat, max_beats, rtol, scheme, step_tol, acceleration: LO-heart integration
+            (:func:`lvenv.simulate`); the env uses the adaptive scheme and Anderson acceleration
+            by default (``steps_per_beat`` then only matters for ``render``).
         autoreset_mode: ``NEXT_STEP`` (default) or ``DISABLED`` (every step evaluates every
             member's action; what optimisers use).
 
@@ -106,6 +108,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         steps_per_beat: int = 1000,
         max_beats: int = 60,
         rtol: float = 1e-4,
+        scheme: str = "adaptive",
+        step_tol: float = DEFAULT_STEP_TOL,
+        acceleration: str = "anderson",
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ):
@@ -116,7 +121,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         except ValueError:
             autoreset_mode = None
         choice("autoreset_mode", autoreset_mode, (AutoresetMode.NEXT_STEP, AutoresetMode.DISABLED))
-        settings = check_settings(steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol)
+        settings = check_settings(steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme, step_tol=step_tol, acceleration=acceleration)
         if max_episode_steps is not None:
             max_episode_steps = integer("max_episode_steps", max_episode_steps, 1)
         noise = real_array("obs_noise", obs_noise)
@@ -129,7 +134,8 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.patients = resolve(patient, num_envs)
         self.config = core.Config(
             actions=ActionMap(action_params, action_mode), steps_per_beat=settings["steps_per_beat"],
-            max_beats=settings["max_beats"], rtol=settings["rtol"], tolerance=real("tolerance", tolerance, 0.0),
+            max_beats=settings["max_beats"], rtol=settings["rtol"], scheme=settings["scheme"], step_tol=settings["step_tol"],
+            acceleration=settings["acceleration"], tolerance=real("tolerance", tolerance, 0.0),
             max_episode_steps=max_episode_steps,
             obs_noise=tuple(map(float, noise)) if np.any(noise > 0) else None,
             autoreset=autoreset_mode == AutoresetMode.NEXT_STEP,
@@ -155,7 +161,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         metrics = np.asarray(raw["metrics"])[: self.num_envs]
         info: dict[str, Any] = {name: metrics[:, i] for i, name in enumerate(OBS_NAMES)}
         info["status"] = status.names(np.asarray(raw["status"])[: self.num_envs])
-        for key in ("converged", "beats", "mismatch", "clipped", "reset"):
+        for key in ("converged", "beats", "steps", "mismatch", "clipped", "reset"):
             if key in raw:
                 info[key] = np.asarray(raw[key])[: self.num_envs]
         info["parameters"] = dict(zip(self.action_names, np.asarray(raw["parameters"])[: self.num_envs].T))

@@ -15,6 +15,7 @@ from lvenv import coupling, presets
 from lvenv.env.functional import LVHeart
 from lvenv.metrics import OBS_NAMES
 from lvenv.patients import Patient, builtin
+from lvenv.simulation import DEFAULT_STEP_TOL
 from lvenv.status import EF_MIN
 from lvenv.validation import InputError
 
@@ -282,24 +283,27 @@ def test_env_state_round_trips_and_bad_states_are_refused(venv):
         venv.set_state({"y": saved["y"]})
 
 
-def test_functional_api_jits_vmaps_and_agrees_with_the_vector_env():
-    env = LVHeart(**FAST, tolerance=0.0)
+@pytest.mark.parametrize("scheme, rtol", [("fixed", 1e-12), ("adaptive", DEFAULT_STEP_TOL)])
+def test_functional_api_jits_vmaps_and_agrees_with_the_vector_env(scheme, rtol):
+    """Exactly with fixed steps; with step-size control, last-bit differences between the vmapped
+    and the batched program may flip an accept/reject decision, so agreement is to the step tolerance."""
+    env = LVHeart(**FAST, tolerance=0.0, scheme=scheme)
     patients = ["normal", "heart_failure", "normal"]
     batch = env.params(patients)
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     obs, state = jax.jit(jax.vmap(env.reset))(keys, batch)
     action = jnp.array([[0.15, 1.1, 0.02, 0.25, 12.0, 3.0], [0.2, 0.9, 0.01, 0.3, 10.0, 4.0], [np.nan] * 6])
     obs2, state2, reward, done, info = jax.jit(jax.vmap(env.step))(keys, state, action, batch)
-    venv = gymnasium.make_vec(ENV_ID, num_envs=3, patient=patients, max_episode_steps=None, tolerance=0.0, **FAST)
+    venv = gymnasium.make_vec(ENV_ID, num_envs=3, patient=patients, max_episode_steps=None, tolerance=0.0, scheme=scheme, **FAST)
     ref_obs, _ = venv.reset(seed=0)
     ref = venv.step(np.asarray(action))
-    np.testing.assert_allclose(np.asarray(obs), ref_obs, rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(obs2), ref[0], rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(reward), ref[1], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(obs), ref_obs, rtol=rtol)
+    np.testing.assert_allclose(np.asarray(obs2), ref[0], rtol=rtol)
+    np.testing.assert_allclose(np.asarray(reward), ref[1], rtol=10 * rtol)
     assert np.asarray(done).tolist() == [False, False, True] and int(info["status"][2]) == 100
     assert obs.shape == (3, len(OBS_NAMES)) and env.action_space.shape == (6,)
     single_obs, _ = jax.jit(env.reset)(keys[0], env.params("heart_failure"))
-    np.testing.assert_allclose(np.asarray(single_obs), np.asarray(obs[1]), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(single_obs), np.asarray(obs[1]), rtol=rtol)
 
 
 def test_builtin_patients_are_valid_records():

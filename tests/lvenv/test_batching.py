@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import lvenv
-from lvenv import presets
+from lvenv import devices, presets
 
 
 def cohort():
@@ -25,13 +25,15 @@ def test_batch_equals_members_run_one_by_one():
         np.testing.assert_allclose(batch.traces.V[i], single.traces.V, rtol=1e-12)
 
 
-def test_a_member_is_bit_identical_in_batches_of_any_size():
-    """Padding to lvenv.devices.LANES per device: sizes below, at and above one pad block, and
-    sizes that shard over two devices, give the same bits for the same member."""
+@pytest.mark.parametrize("scheme", ["fixed", "adaptive"])
+def test_a_member_is_bit_identical_in_batches_of_any_size(scheme):
+    """Padding to lvenv.devices.LANES per device: sizes below, at and above one pad block, sizes
+    that shard over two devices and sizes that run in several CPU blocks per device give the
+    same bits for the same member, with fixed steps and with step-size control."""
     heart, other = presets.normal().replace(tau2=0.15, HR=72.0), presets.heart_failure()
     reference = None
-    for n in (1, 8, 9, 17, 40, 128, 200):
-        res = lvenv.simulate([heart] + [other] * (n - 1), beats=2, steps_per_beat=200, traces=False)
+    for n in (1, 8, 9, 17, 128, 200, 600) if scheme == "fixed" else (1, 17, 200, 600):
+        res = lvenv.simulate([heart] + [other] * (n - 1), beats=2, steps_per_beat=200, traces=False, scheme=scheme)
         values = np.array([res.metrics[k][0] for k in res.metrics])
         reference = values if reference is None else reference
         np.testing.assert_array_equal(values, reference, err_msg=f"batch of {n}")
@@ -46,14 +48,16 @@ def test_stacked_pytree_equals_sequence_and_geometry_may_differ():
     assert len({round(float(v), 6) for v in a.metrics["EDV"]}) == len(hearts)
 
 
+@pytest.mark.parametrize("scheme", ["fixed", "adaptive"])
 @pytest.mark.parametrize("poison, value, expected", [("nan", np.nan, "nonfinite"), ("huge_volume", 1e4, "diverged")])
-def test_poisoned_member_is_flagged_and_others_bit_identical(poison, value, expected):
+def test_poisoned_member_is_flagged_and_others_bit_identical(poison, value, expected, scheme):
     hearts = cohort()
     y0 = np.stack([lvenv.simulate(h, beats=1).final_state for h in hearts])
     y_bad = y0.copy()
     y_bad[2, 6] = value  # LV volume of member 2
-    clean = lvenv.simulate(hearts, initial_state=y0)
-    dirty = lvenv.simulate(hearts, initial_state=y_bad)
+    settings = dict(scheme=scheme, traces=scheme == "fixed")
+    clean = lvenv.simulate(hearts, initial_state=y0, **settings)
+    dirty = lvenv.simulate(hearts, initial_state=y_bad, **settings)
     assert dirty.status[2] == expected
     assert all(np.isnan(v[2]) for v in dirty.metrics.values()), "a failed member's metrics are NaN, never numbers"
     others = [i for i in range(len(hearts)) if i != 2]
@@ -84,3 +88,24 @@ def test_float32_mode_runs_and_stays_close():
     assert r32.status == "ok"
     assert r32.metrics["EF"] == pytest.approx(r64.metrics["EF"], abs=2e-3)
     assert r32.metrics["P_ao_sys"] == pytest.approx(r64.metrics["P_ao_sys"], rel=5e-3)
+
+
+def test_layout_is_read_back_from_a_padded_batch():
+    """Jitted code reads (devices, blocks, block) from the padded size alone: the layout of the
+    padded size is the layout of the original size, and blocks never exceed the CPU limit."""
+    for n in range(1, 3000, 7):
+        used, blocks, block = devices.layout(n)
+        assert used * blocks * block == devices.padded_size(n) >= n
+        assert devices.layout(devices.padded_size(n)) == (used, blocks, block)
+        assert block % devices.LANES == 0 and (blocks == 1 or block <= devices.CPU_BLOCK)
+
+
+def test_bad_scheme_settings_are_rejected_naming_the_field():
+    with pytest.raises(ValueError, match=r"scheme.*'rk4'.*'fixed', 'adaptive'"):
+        lvenv.simulate(presets.normal(), scheme="rk4")
+    with pytest.raises(ValueError, match="step_tol"):
+        lvenv.simulate(presets.normal(), scheme="adaptive", step_tol=0.0, traces=False)
+    with pytest.raises(ValueError, match="traces = True needs scheme = 'fixed'"):
+        lvenv.simulate(presets.normal(), scheme="adaptive")
+    with pytest.raises(ValueError, match=r"acceleration = 'newton' is not one of 'none', 'anderson'"):
+        lvenv.simulate(presets.normal(), acceleration="newton")

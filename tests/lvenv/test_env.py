@@ -162,7 +162,7 @@ def test_replace_patients_restarts_those_members_cold_and_leaves_the_others_bit_
     for i in (0, 3):
         assert np.array_equal(got[0][i], expected[0][i]) and got[1][i] == expected[1][i]
     names = env.unwrapped.action_names
-    cold = lvenv.simulate([hf.heart.replace(**dict(zip(names, map(float, second[i])))) for i in (1, 2)], traces=False, **FAST)
+    cold = lvenv.simulate([hf.heart.replace(**dict(zip(names, map(float, second[i])))) for i in (1, 2)], traces=False, scheme="adaptive", acceleration="anderson", **FAST)
     for j, i in enumerate((1, 2)):
         np.testing.assert_allclose(got[0][i], [cold.metrics[k][j] for k in OBS_NAMES], rtol=1e-10)
     assert got[1][1] != expected[1][1], "the replaced members are scored against their new patient"

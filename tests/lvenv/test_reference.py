@@ -25,11 +25,14 @@ def random_hearts(seed, closed_loop):
     return hearts
 
 
+@pytest.mark.parametrize("scheme", ["fixed", "adaptive"])
 @pytest.mark.parametrize("closed_loop", [0, 1], ids=["open-loop", "closed-loop"])
-def test_matches_radau_reference(closed_loop):
+def test_matches_radau_reference(closed_loop, scheme):
+    """The accuracy specification, for both schemes at their defaults: EF within 0.5 points,
+    phase durations within 2 ms, pressures within 1 %, EDV / ESV within 0.5 %."""
     hearts = random_hearts(seed=11 + closed_loop, closed_loop=closed_loop)
     beats = 2
-    res = lvenv.simulate(hearts, beats=beats)
+    res = lvenv.simulate(hearts, beats=beats, scheme=scheme, traces=scheme == "fixed")
     assert list(res.status) == ["ok"] * N_SETS
     for i, heart in enumerate(hearts):
         ref, _ = simulate_reference(heart, cavity_volume(heart.geometry), beats=beats)
@@ -49,3 +52,23 @@ def test_training_protocol_beat_matches_reference():
     ref, y_end = simulate_reference(heart, cavity_volume(heart.geometry), beats=1)
     np.testing.assert_allclose(res.final_state, y_end, rtol=2e-3, atol=2e-4)
     assert res.metrics["EF"] == pytest.approx(ref["EF"], abs=0.005)
+
+
+def test_adaptive_error_falls_with_the_step_tolerance_and_needs_fewer_steps():
+    """Step-size control controls the error: 40× tighter tolerance, at least 4× smaller error in
+    EF and in the phase durations (the local error is O(h²), so the global one falls about
+    linearly with the tolerance), and the default needs well under the fixed scheme's 1,000 steps."""
+    hearts = random_hearts(seed=12, closed_loop=1)[:3]
+    refs = [simulate_reference(h, cavity_volume(h.geometry), beats=2)[0] for h in hearts]
+
+    def errors(step_tol):
+        res = lvenv.simulate(hearts, beats=2, scheme="adaptive", step_tol=step_tol, traces=False)
+        ef = max(abs(res[i].metrics["EF"] - ref["EF"]) for i, ref in enumerate(refs))
+        timing = max(abs(res[i].metrics[k] - ref[k]) for i, ref in enumerate(refs) for k in ("IVCT", "ET", "IVRT"))
+        return ef, timing, res.steps
+
+    loose, tight = errors(4e-3), errors(1e-4)
+    assert tight[0] < loose[0] / 4 and tight[1] < loose[1] / 4, (loose[:2], tight[:2])
+    assert np.all(tight[2] > loose[2])
+    _, _, default_steps = errors(lvenv.simulation.DEFAULT_STEP_TOL)
+    assert np.all(default_steps / 2 < 500), default_steps  # steps over both beats

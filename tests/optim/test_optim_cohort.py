@@ -98,7 +98,7 @@ def test_a_weight_for_a_target_the_row_lacks_is_a_bad_row(tmp_path):
 
 def _check_reported_fit_against_an_independent_simulation(result, patient, options):
     heart = patient.heart.replace(**result["parameters"])
-    sim = lvenv.simulate(heart, steps_per_beat=options.steps_per_beat, max_beats=400, traces=False)
+    sim = lvenv.simulate(heart, steps_per_beat=options.steps_per_beat, scheme=options.scheme, max_beats=400, traces=False)
     assert sim.status == "ok"
     errors = [abs(float(sim.metrics[k]) - t) / t for k, t in patient.targets.items()]
     assert result["mismatch"] == pytest.approx(np.mean(errors), rel=2e-3, abs=2e-4)
