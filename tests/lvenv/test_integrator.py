@@ -93,8 +93,9 @@ def test_steady_state_loop_converges_and_reports_it(scheme):
 
 def test_anderson_acceleration_reaches_the_same_steady_state_in_fewer_beats():
     """Open loop from a cold start (the slow arterial mode: plain beats contract it by a factor
-    of about 0.6 each): the accelerated iteration needs at most half the beats, lands at least
-    as close to a tightly converged reference, and conserves the closed-loop blood volume."""
+    of about 0.6 each): the accelerated iteration needs at most half the beats, lands as close to
+    a tightly converged reference (within a factor 2: both stop at the same beat-to-beat test),
+    and conserves the closed-loop blood volume."""
     rng = np.random.default_rng(4)
     hearts = [presets.normal().replace(tau2=rng.uniform(0.12, 0.22), R3=rng.uniform(0.15, 0.35), C=rng.uniform(8.0, 20.0), closed_loop=0.0)
               for _ in range(4)]
@@ -105,7 +106,7 @@ def test_anderson_acceleration_reaches_the_same_steady_state_in_fewer_beats():
     assert np.median(fast.beats) <= np.median(plain.beats) / 2, (fast.beats, plain.beats)
     for key in ("EF", "ESV", "P_ao_sys", "P_ao_dia"):
         err = lambda r: np.max(np.abs(r.metrics[key] / reference.metrics[key] - 1))
-        assert err(fast) <= max(err(plain), 1e-4), key
+        assert err(fast) <= 2 * max(err(plain), 1e-4), key
 
     closed = presets.heart_failure().replace(closed_loop=1.0)
     res = lvenv.simulate(closed, traces=False, acceleration="anderson", scheme="adaptive")
