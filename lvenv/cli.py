@@ -48,7 +48,8 @@ from lvenv.identification import ACTION_BOUNDS
 from lvenv.metrics import METRIC_NAMES, display, header
 from lvenv.params import field_names
 from lvenv.patients import BUILTIN, Patient, builtin
-from lvenv.simulation import Traces, simulate
+from lvenv.env.core import ENV_SCHEME
+from lvenv.simulation import SCHEMES, Traces, simulate
 from lvenv.status import is_usable
 from lvenv.validation import InputError
 
@@ -264,7 +265,7 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--steps-per-beat", type=click.IntRange(min=10), default=500, show_default=True,
               help="ROS2 steps per cardiac cycle of the fixed-step simulations (lm, the fitted beat, --scheme fixed)")
-@click.option("--scheme", type=click.Choice(("adaptive", "fixed")), default="adaptive", show_default=True,
+@click.option("--scheme", type=click.Choice(SCHEMES), default=ENV_SCHEME, show_default=True,
               help="integration scheme of the optimisers' env: step-size control, or --steps-per-beat equal steps")
 @click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")

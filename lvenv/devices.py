@@ -60,13 +60,17 @@ def _block_limit() -> int | None:
     return None if limit <= 0 else max(LANES, limit // LANES * LANES)
 
 
+def _ceil_div(a: int, b: int) -> int:
+    return -(-a // b)
+
+
 def _plan(n_members: int) -> tuple[int, int, int]:
     count = len(jax.devices())
     used = 1 if count == 1 or n_members < MIN_MEMBERS_PER_DEVICE * count else count
-    per_device = -(-n_members // used)
+    per_device = _ceil_div(n_members, used)
     limit = _block_limit()
-    blocks = 1 if limit is None else max(1, -(-per_device // limit))
-    block = -(-(-(-per_device // blocks)) // LANES) * LANES
+    blocks = 1 if limit is None else max(1, _ceil_div(per_device, limit))
+    block = _ceil_div(_ceil_div(per_device, blocks), LANES) * LANES
     return used, blocks, block
 
 

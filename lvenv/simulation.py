@@ -80,23 +80,31 @@ def _scan_unroll() -> int:
     return int(os.environ.get("LVENV_SCAN_UNROLL", default))
 
 
+def _beat_system(p: ModelParams):
+    """What both schemes integrate: the period T (s), f(ca, y), its analytic Jacobian for
+    :func:`lvenv.integrator.ros2_step`, and the samples the event detector folds (V, P_lv, P_at,
+    P_c, P_ao of a state)."""
+    k = cell.rates(p.cell)
+    f = lambda ca, y: model.rhs_at_calcium(ca, y, p, k)
+    jac = lambda ca, y, lookahead: model.jacobian(ca, y, p, k, lookahead)
+
+    def sample(y):
+        obs = model.observe(y, p)
+        return y[IDX_V], obs.p_lv, obs.p_at, y[IDX_PC], obs.p_ao
+
+    return beat_period(p.circ), f, jac, sample
+
+
 def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool):
     """Simulate one beat of B members from states ``y0`` (9, B), Ca onset at t = 0.
 
     Returns ``(y_end, metrics, valid, traces)``; traces are ``(V, P_lv, P_ao)`` of shape
     ``(steps + 1, B)`` when ``record`` else ``None``.
     """
-    period = beat_period(p.circ)
+    period, f, jac, sample = _beat_system(p)
     h = period / steps
-    k = cell.rates(p.cell)
-    f = lambda ca, y: model.rhs_at_calcium(ca, y, p, k)
-    jac = lambda ca, y, lookahead: model.jacobian(ca, y, p, k, lookahead)
     t = jnp.arange(steps + 1, dtype=y0.dtype)[:, None] * h
     ca, ca_rate = coupling.calcium(t, p.lo, p.cell), coupling.calcium_rate(t, p.lo, p.cell)
-
-    def sample(y):
-        obs = model.observe(y, p)
-        return y[IDX_V], obs.p_lv, obs.p_at, y[IDX_PC], obs.p_ao
 
     acc0 = events.start(jnp.zeros_like(h), *sample(y0))
 
@@ -165,18 +173,11 @@ def beat_adaptive(p: ModelParams, y0: jax.Array, step_tol, max_steps: int, grid:
     row operations, not per-member gathers. The returned grid is this beat's (count 0 when its
     trials did not fit).
     """
-    period = beat_period(p.circ)
-    k = cell.rates(p.cell)
-    f = lambda ca, y: model.rhs_at_calcium(ca, y, p, k)
-    jac = lambda ca, y, lookahead: model.jacobian(ca, y, p, k, lookahead)
+    period, f, jac, sample = _beat_system(p)
     norm = cell.transient_norm(p.cell)
     scale = _state_scale(p, y0.dtype)
     zero = jnp.zeros_like(y0[0])
     old_times, old_count = (jnp.zeros((GRID_STEPS,) + zero.shape, y0.dtype), jnp.zeros(zero.shape, jnp.int32)) if grid is None else grid
-
-    def sample(y):
-        obs = model.observe(y, p)
-        return y[IDX_V], obs.p_lv, obs.p_at, y[IDX_PC], obs.p_ao
 
     def cond(c):
         return (c["n"] < max_steps) & ~jnp.all(c["done"])

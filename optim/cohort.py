@@ -70,6 +70,7 @@ from typing import Any
 import numpy as np
 
 from lvenv import presets
+from lvenv.env.core import ENV_SCHEME
 from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS, OBS_NAMES, Metric
 from lvenv.params import Heart, ranges
@@ -274,7 +275,7 @@ class CohortOptions:
     stop_mismatch: float = 0.01  # a patient's search stops below this mismatch (fraction)
     sigma0: float = 0.25  # CMA-ES initial step, unit-cube units
     steps_per_beat: int = 500  # of the fixed scheme only
-    scheme: str = "adaptive"  # the env's integration scheme (lvenv.simulation.SCHEMES)
+    scheme: str = ENV_SCHEME  # the env's integration scheme (lvenv.simulation.SCHEMES)
     max_beats: int = 12  # beats per member and env step
     confirm_steps: int = 10  # env steps to confirm the best point's steady state, at most
     rtol: float = 1e-4  # steady-state criterion (lvenv.simulate)

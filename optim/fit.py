@@ -29,6 +29,7 @@ import gymnasium
 import numpy as np
 
 import lvenv
+from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS
 from lvenv.patients import Patient, builtin
@@ -59,7 +60,7 @@ class FitRow(MinimizeResult):
 
 
 def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60,
-             rtol: float = 1e-4, scheme: str = "adaptive") -> Any:
+             rtol: float = 1e-4, scheme: str = ENV_SCHEME) -> Any:
     """A vector env set up for optimisation (autoreset Disabled, no tolerance, no truncation).
 
     ``scheme``: the env's integration scheme (:data:`lvenv.simulation.SCHEMES`); ``steps_per_beat``
@@ -234,7 +235,7 @@ def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: 
     while len(truths) < n_sets:
         x = space.from_unit(rng.random((64, space.dimension)))
         sim = lvenv.simulate([base.heart.replace(**dict(zip(space.names, map(float, xi)))) for xi in x],
-                             scheme="adaptive", acceleration="anderson", max_beats=60, traces=False)
+                             scheme=ENV_SCHEME, acceleration=ENV_ACCELERATION, max_beats=60, traces=False)
         m = sim.metrics
         good = np.asarray(sim.status) == "ok"
         good &= (m["EF"] > 0.3) & (m["EF"] < 0.75) & (m["P_ao_mean"] > BAND_KPA[0]) & (m["P_ao_mean"] < BAND_KPA[1])

@@ -32,7 +32,7 @@ import jax.numpy as jnp  # noqa: E402
 import lvenv  # noqa: E402
 from lvenv import model, presets  # noqa: E402
 from lvenv.devices import shard_members  # noqa: E402
-from lvenv.simulation import run_beats_jit  # noqa: E402
+from lvenv.simulation import DEFAULT_STEP_TOL, run_beats_jit  # noqa: E402
 from lvenv.geometry import cavity_volume  # noqa: E402
 from tests.lvenv.reference_lo import simulate_reference  # noqa: E402
 
@@ -50,7 +50,8 @@ def cohort(n: int, seed: int = 0) -> lvenv.Heart:
 def settings(config: str) -> dict:
     """``fixed:STEPS`` or ``adaptive:TOL`` as keyword arguments of ``lvenv.simulate``."""
     scheme, value = config.split(":")
-    return {"scheme": "fixed", "steps_per_beat": int(value)} if scheme == "fixed" else {"scheme": scheme, "step_tol": float(value)}
+    fixed = scheme == "fixed"
+    return {"scheme": scheme, "steps_per_beat": int(value) if fixed else 1000, "step_tol": DEFAULT_STEP_TOL if fixed else float(value)}
 
 
 def time_batch(batch, config, dtype, repeats):
@@ -72,8 +73,8 @@ def time_core(batch, config, dtype, repeats):
     p = model.model_params(batch)
     (p_dev, y_dev), _ = shard_members((jax.tree.map(lambda x: np.asarray(x, dtype), p), np.asarray(model.initial_state(p), dtype)), len(p.v0))
     kw = settings(config)
-    run = lambda: jax.block_until_ready(run_beats_jit(p_dev, y_dev, jnp.asarray(1e-4, dtype), steps=kw.get("steps_per_beat", 1000), max_beats=BEATS,
-                                                      steady=False, record=False, scheme=kw["scheme"], step_tol=kw.get("step_tol", 2e-3)))
+    run = lambda: jax.block_until_ready(run_beats_jit(p_dev, y_dev, jnp.asarray(1e-4, dtype), steps=kw["steps_per_beat"], max_beats=BEATS,
+                                                      steady=False, record=False, scheme=kw["scheme"], step_tol=kw["step_tol"]))
     run()
     times = []
     for _ in range(repeats):

@@ -46,7 +46,7 @@ from lvenv.simulation import DEFAULT_STEP_TOL, run_beats_parallel
 from lvenv.status import INVALID_ACTION, is_usable
 from lvenv.units import mmhg_to_kpa
 
-__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "FAILURE_REWARD"]
+__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "FAILURE_REWARD", "ENV_SCHEME", "ENV_ACCELERATION"]
 
 FAILURE_REWARD = -10.0
 BAND_KPA = (mmhg_to_kpa(80.0), mmhg_to_kpa(120.0))
@@ -73,6 +73,12 @@ class EnvState:
     needs_reset: jax.Array  # (N,) the previous step ended this member's episode
 
 
+#: The environment's integration defaults (:mod:`lvenv.simulation`): step-size control, and the
+#: steady state by Anderson-accelerated beats. Everything that evaluates through the env uses them.
+ENV_SCHEME = "adaptive"
+ENV_ACCELERATION = "anderson"
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """Static settings (hashable, closed over by jit)."""
@@ -81,9 +87,9 @@ class Config:
     steps_per_beat: int = 1000
     max_beats: int = 60
     rtol: float = 1e-4
-    scheme: str = "adaptive"
+    scheme: str = ENV_SCHEME
     step_tol: float = DEFAULT_STEP_TOL
-    acceleration: str = "anderson"
+    acceleration: str = ENV_ACCELERATION
     tolerance: float = 1e-3
     max_episode_steps: int | None = None
     obs_noise: tuple[float, ...] | None = None  # relative std of the measurement noise per observation

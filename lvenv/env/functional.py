@@ -59,9 +59,9 @@ class LVHeart:
     steps_per_beat: int = 1000
     max_beats: int = 60
     rtol: float = 1e-4
-    scheme: str = "adaptive"
+    scheme: str = core.ENV_SCHEME
     step_tol: float = DEFAULT_STEP_TOL
-    acceleration: str = "anderson"
+    acceleration: str = core.ENV_ACCELERATION
     tolerance: float = 1e-3
     max_episode_steps: int | None = None
     obs_noise: float = 0.0
@@ -69,13 +69,12 @@ class LVHeart:
     def __post_init__(self) -> None:
         settings = check_settings(steps_per_beat=self.steps_per_beat, max_beats=self.max_beats, rtol=self.rtol, scheme=self.scheme, step_tol=self.step_tol,
                                   acceleration=self.acceleration)
+        del settings["beats"]  # the rest are Config fields
         max_steps = None if self.max_episode_steps is None else integer("max_episode_steps", self.max_episode_steps, 1)
         actions = ActionMap(self.action_params, self.action_mode)
         object.__setattr__(self, "action_params", actions.names)
         object.__setattr__(self, "_config", core.Config(
-            actions=actions, steps_per_beat=settings["steps_per_beat"], max_beats=settings["max_beats"], rtol=settings["rtol"],
-            scheme=settings["scheme"], step_tol=settings["step_tol"], acceleration=settings["acceleration"],
-            tolerance=real("tolerance", self.tolerance, 0.0), max_episode_steps=max_steps,
+            actions=actions, **settings, tolerance=real("tolerance", self.tolerance, 0.0), max_episode_steps=max_steps,
             obs_noise=None if real("obs_noise", self.obs_noise, 0.0) == 0.0 else (float(self.obs_noise),) * len(observation_space().names),
             autoreset=False,
         ))

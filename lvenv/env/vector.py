@@ -108,9 +108,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         steps_per_beat: int = 1000,
         max_beats: int = 60,
         rtol: float = 1e-4,
-        scheme: str = "adaptive",
+        scheme: str = core.ENV_SCHEME,
         step_tol: float = DEFAULT_STEP_TOL,
-        acceleration: str = "anderson",
+        acceleration: str = core.ENV_ACCELERATION,
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
     ):
@@ -122,6 +122,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
             autoreset_mode = None
         choice("autoreset_mode", autoreset_mode, (AutoresetMode.NEXT_STEP, AutoresetMode.DISABLED))
         settings = check_settings(steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme, step_tol=step_tol, acceleration=acceleration)
+        del settings["beats"]  # the rest are Config fields
         if max_episode_steps is not None:
             max_episode_steps = integer("max_episode_steps", max_episode_steps, 1)
         noise = real_array("obs_noise", obs_noise)
@@ -133,9 +134,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.render_mode = render_mode
         self.patients = resolve(patient, num_envs)
         self.config = core.Config(
-            actions=ActionMap(action_params, action_mode), steps_per_beat=settings["steps_per_beat"],
-            max_beats=settings["max_beats"], rtol=settings["rtol"], scheme=settings["scheme"], step_tol=settings["step_tol"],
-            acceleration=settings["acceleration"], tolerance=real("tolerance", tolerance, 0.0),
+            actions=ActionMap(action_params, action_mode), **settings, tolerance=real("tolerance", tolerance, 0.0),
             max_episode_steps=max_episode_steps,
             obs_noise=tuple(map(float, noise)) if np.any(noise > 0) else None,
             autoreset=autoreset_mode == AutoresetMode.NEXT_STEP,
