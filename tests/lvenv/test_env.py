@@ -19,6 +19,9 @@ from lvenv.patients import OBS_NAMES, Patient, builtin
 
 FAST = dict(steps_per_beat=500, max_beats=40)
 ENV_ID = "lvenv/LVHeart-v0"
+# A healthy action (τ2, Sa, R2, R3, C, Cat in the action space's physical units): a random one fails now and then (about 1 in 60
+# gives no valve cycle), which would make the episode-bookkeeping tests below depend on the draw.
+HEALTHY = np.array([0.15, 1.2, 0.02, 0.3, 10.0, 5.0])
 
 
 @pytest.fixture(scope="module")
@@ -71,10 +74,11 @@ def test_shapes_dtypes_and_spaces_contain_observations(venv):
 
 def test_next_step_autoreset(venv):
     venv.reset(seed=0)
-    action = np.tile(venv.single_action_space.sample(), (4, 1))
+    action = np.tile(HEALTHY, (4, 1))
     for _ in range(2):
         _, _, terminated, truncated, info = venv.step(action)
-        assert not info["reset"].any() and not truncated.any()
+        assert np.all(info["status"] == "ok")
+        assert not info["reset"].any() and not (terminated | truncated).any()
     _, _, terminated, truncated, info = venv.step(action)
     assert truncated.all(), "max_episode_steps = 3"
     obs_reset, reward, terminated, truncated, info = venv.step(action)
@@ -85,7 +89,7 @@ def test_next_step_autoreset(venv):
 
 def test_reset_is_deterministic_including_noise():
     env = gymnasium.make_vec(ENV_ID, num_envs=3, obs_noise=0.02, **FAST)
-    actions = np.array([[0.15, 1.2, 0.02, 0.3, 10.0, 5.0]] * 3)
+    actions = np.tile(HEALTHY, (3, 1))
     runs = []
     for _ in range(2):
         obs0, _ = env.reset(seed=42)
@@ -272,7 +276,7 @@ def test_standard_wrappers_and_a_random_search_agent_improve_reward():
 def test_rgb_array_render_draws_pv_loop():
     env = gymnasium.make(ENV_ID, render_mode="rgb_array", **FAST)
     env.reset(seed=0)
-    env.step(env.action_space.sample())
+    env.step(HEALTHY)
     img = env.render()
     assert img.ndim == 3 and img.shape[2] == 3 and img.dtype == np.uint8
     assert img.std() > 10, "not a blank canvas"
