@@ -19,8 +19,9 @@ from lvenv.patients import OBS_NAMES, Patient, builtin
 
 FAST = dict(steps_per_beat=500, max_beats=40)
 ENV_ID = "lvenv/LVHeart-v0"
-# A healthy action (τ2, Sa, R2, R3, C, Cat in the action space's physical units): a random one fails now and then (about 1 in 60
-# gives no valve cycle), which would make the episode-bookkeeping tests below depend on the draw.
+# A healthy action (τ2, Sa, R2, R3, C, Cat in the action space's physical units). A random one
+# fails now and then (about 1 draw in 60 gives no valve cycle), which would make the
+# episode-bookkeeping tests below depend on the draw.
 HEALTHY = np.array([0.15, 1.2, 0.02, 0.3, 10.0, 5.0])
 
 
