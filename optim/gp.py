@@ -108,6 +108,40 @@ def fit_gp(
         return gp.fit(u, y)
 
 
+def data_log_likelihood(gp: GaussianProcessRegressor, y: FloatArray, log_targets: bool) -> float:
+    """log p(y) of the data y under a GP fitted (`fit_gp`, normalised) to t(y), t = identity or
+    log10: the GP's log marginal likelihood of z = (t - mean)/std plus the change of variables,
+
+        log p(y) = LML(z) - N log std(t) + Σ_i log t'(y_i),   t'(y) = 1 or 1/(y ln 10),
+
+    so that the two transforms can be compared (Box & Cox 1964, λ = 1 against λ = 0)."""
+    t = np.log10(y) if log_targets else y
+    jacobian = -np.sum(np.log(y * np.log(10.0))) if log_targets else 0.0
+    std = float(np.std(t)) or 1.0  # as scikit-learn's normalize_y
+    return float(gp.log_marginal_likelihood_value_) - len(y) * np.log(std) + jacobian
+
+
+def fit_gp_or_log(
+    u: FloatArray, y: FloatArray, kernels: tuple[Kernel, Kernel], nugget: float, optimise: bool
+) -> tuple[GaussianProcessRegressor, FloatArray, tuple[Kernel, Kernel]]:
+    """A GP on y and, when every y > 0, one on log10 y; the one under which y is more likely
+    (`data_log_likelihood`). Returns it, the targets it was fitted to, and the two fitted
+    kernels (identity, log) to warm-start the next call with.
+
+    Objectives that fall by decades (a mismatch far from a fit) are better modelled in log10;
+    near a zero-residual fit a sum of squares is close to quadratic and better modelled as it is.
+    """
+    gp = fit_gp(u, y, kernels[0], nugget, n_restarts=0, optimise=optimise)
+    if not np.all(y > 0.0):
+        return gp, y, (gp.kernel_, kernels[1])
+    t = np.log10(y)
+    gp_log = fit_gp(u, t, kernels[1], nugget, n_restarts=0, optimise=optimise)
+    fitted = (gp.kernel_, gp_log.kernel_)
+    if data_log_likelihood(gp_log, y, True) > data_log_likelihood(gp, y, False):
+        return gp_log, t, fitted
+    return gp, y, fitted
+
+
 def predict(gp: GaussianProcessRegressor, u: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Posterior mean and standard deviation at the rows of u."""
     mean, std = gp.predict(np.atleast_2d(u), return_std=True)

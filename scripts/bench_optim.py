@@ -3,8 +3,8 @@
 Every method fits the same patients through the same vector env (one env per patient, num_envs
 members, compiled once before timing), on the same search space (the unit cube of
 `lvenv.identification.ParameterSpace`: log axes for τ2, Sa, R3, C, Cat), from the same start (the patient's own parameters), with the
-same evaluation budget and the same objective (`optim.minimize`: f = −reward, log10 for MADS and
-NOMAD as in `minimize`'s default for MADS):
+same evaluation budget and the same objective (`optim.minimize`: f = −reward; NOMAD gets log10 f
+unless `--nomad-objective raw`, MADS gets f and its kriging search picks f or log10 f per fit):
 
 * mads    — `optim.minimize(venv, "mads")` (ours);
 * nomad   — NOMAD 4 via PyNomad, DIRECTION_TYPE ORTHO 2N, BB_MAX_BLOCK_SIZE = num_envs
@@ -19,7 +19,7 @@ Reported per (patient, method), medians over seeds: evaluations and wall time un
 point with mean relative mismatch < target, the final mismatch, and the fraction of seeds that
 reached the target. Wall time counts optimiser and env time from the start of the run.
 
-    python scripts/bench_optim.py [--seeds 3] [--budget 480] [--methods mads nomad de nm cma]
+    python scripts/bench_optim.py [--seeds 3] [--budget 480] [--methods mads nomad de nm cma] [--nomad-objective log]
 """
 
 from __future__ import annotations
@@ -88,13 +88,13 @@ def to_target(mismatch: list[float], elapsed: list[float], target: float) -> dic
     }
 
 
-def run_one(method: str, venv, budget: int, seed: int, target: float) -> dict:
+def run_one(method: str, venv, budget: int, seed: int, target: float, nomad_log: bool = True) -> dict:
     if method in ("mads", "cma", "kriging"):
         res = minimize(venv, method, budget=budget, seed=seed, progress=False, **DEFAULT_OPTIONS[method])
         return to_target(res.history.mismatch.tolist(), res.history.elapsed.tolist(), target)
     venv.reset(seed=seed)
     # NOMAD evaluates its last block whole (it may pass MAX_BB_EVAL by less than a block)
-    rec = Recorder(venv, budget + (venv.unwrapped.num_envs if method == "nomad" else 0), log_objective=method == "nomad")
+    rec = Recorder(venv, budget + (venv.unwrapped.num_envs if method == "nomad" else 0), log_objective=method == "nomad" and nomad_log)
     space = rec.inner.space
     b = unit_bounds(space)
     own = patient_values(venv)
@@ -140,6 +140,7 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=16)
     ap.add_argument("--steps-per-beat", type=int, default=500)
     ap.add_argument("--target", type=float, default=0.03)
+    ap.add_argument("--nomad-objective", choices=("log", "raw"), default="log", help="what NOMAD minimises: log10 f or f")
     ap.add_argument("--out", default=None, help="also write the JSON here")
     a = ap.parse_args()
     report = {"settings": vars(a), "results": {}}
@@ -148,7 +149,7 @@ def main() -> None:
         compile_time = warm_up(venv)
         report["results"][name] = {"compile_time": compile_time}
         for method in a.methods:
-            runs = [run_one(method, venv, a.budget, seed, a.target) for seed in range(a.seeds)]
+            runs = [run_one(method, venv, a.budget, seed, a.target, a.nomad_objective == "log") for seed in range(a.seeds)]
             report["results"][name][method] = {
                 "median_evaluations_to_target": median_or_none([r["evaluations_to_target"] for r in runs]),
                 "median_wall_time_to_target": median_or_none([r["wall_time_to_target"] for r in runs]),

@@ -67,7 +67,8 @@ def disc(x: np.ndarray) -> BatchEvaluation:
 
 @pytest.mark.parametrize(("problem", "solution"), [(kink, [1.0, 0.0]), (disc, [-(2**-0.5), -(2**-0.5)])])
 def test_progressive_barrier_solves_constrained_problems(problem, solution) -> None:  # type: ignore[no-untyped-def]
-    options = MadsOptions(constraint="progressive_barrier", kriging_search=False, min_poll_size=1e-7)
+    # a spread first batch, so that the barrier starts with infeasible points on both problems
+    options = MadsOptions(constraint="progressive_barrier", kriging_search=False, min_poll_size=1e-7, initial_design=True)
     opt = optim.Mads(BOUNDS, 6, seed=0, options=options)
     h_max: list[float] = []
     res = optim.run(opt, problem, 1500, callback=lambda o: h_max.append(o.barrier.h_max) and None)

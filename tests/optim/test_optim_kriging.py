@@ -17,8 +17,10 @@ import lvenv  # noqa: F401  (registers lvenv/LVHeart-v0)
 import optim
 from optim import Bounds, KrigingOptions
 from optim.gp import (
+    data_log_likelihood,
     expected_improvement,
     fit_gp,
+    fit_gp_or_log,
     latin_hypercube,
     matern_kernel,
     minimise_on_cube,
@@ -75,6 +77,32 @@ def test_predictions_follow_the_kriging_equations() -> None:
     got_mean, got_std = predict(gp, test)
     np.testing.assert_allclose(got_mean, mean, rtol=1e-8)
     np.testing.assert_allclose(got_std, s * np.sqrt(var_post), rtol=1e-6)
+
+
+@pytest.mark.parametrize("log_targets", [False, True])
+def test_data_log_likelihood_is_the_density_of_y(log_targets: bool) -> None:
+    """y (or log10 y) ~ N(mean, std² (K + αI)) under a normalised GP; the density of y itself
+    adds the Jacobian of the transform."""
+    u, y = training_set()
+    t = np.log10(y) if log_targets else y
+    gp = fit_gp(u, t, matern_kernel(2), nugget=1e-6, n_restarts=0)
+    cov = np.std(t) ** 2 * (gp.kernel_(u) + 1e-6 * np.eye(len(u)))
+    expected = stats.multivariate_normal(np.full(len(u), t.mean()), cov).logpdf(t)
+    if log_targets:
+        expected -= np.sum(np.log(y * np.log(10.0)))
+    assert data_log_likelihood(gp, y, log_targets) == pytest.approx(expected, rel=1e-8, abs=1e-6)
+
+
+def test_the_search_gp_models_decades_in_log_and_a_quadratic_as_it_is() -> None:
+    u = latin_hypercube(40, 2, np.random.default_rng(0))
+    kernels = (matern_kernel(2), matern_kernel(2))
+    decades = 10.0 ** (-6.0 * u[:, 0] + 2.0 * u[:, 1])
+    quadratic = np.sum((u - 0.5) ** 2 * [1.0, 30.0], axis=1)  # a sum of squares near its zero
+    _, targets, _ = fit_gp_or_log(u, decades, kernels, 1e-6, optimise=True)
+    np.testing.assert_array_equal(targets, np.log10(decades))
+    for y in (quadratic, quadratic - 0.5):  # more likely as it is; partly negative, no log at all
+        _, targets, _ = fit_gp_or_log(u, y, kernels, 1e-6, optimise=True)
+        np.testing.assert_array_equal(targets, y)
 
 
 @pytest.mark.parametrize(("mu", "sigma", "f_min"), [(1.0, 0.5, 0.8), (0.0, 2.0, 1.0), (0.5, 0.1, 0.0)])

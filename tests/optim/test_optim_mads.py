@@ -22,8 +22,8 @@ def test_halton_points_are_radical_inverses() -> None:
 @settings(max_examples=60, deadline=None)
 @given(t=st.integers(0, 2000), level=st.integers(-3, 24), n=st.integers(1, 8))
 def test_householder_directions_are_orthogonal_on_the_poll_frame(t: int, level: int, n: int) -> None:
-    q = adjusted_halton_direction(first_primes(n)[-1] + t, level, n)
     bound = 2.0 ** (abs(level) / 2)
+    q = adjusted_halton_direction(first_primes(n)[-1] + t, bound, n)
     assert 1 <= np.linalg.norm(q) <= bound + 1e-12
     # α is maximal: q is within rounding of the sphere of radius 2^(|ℓ|/2)
     assert np.linalg.norm(q) >= bound - np.sqrt(n)
@@ -32,18 +32,31 @@ def test_householder_directions_are_orthogonal_on_the_poll_frame(t: int, level: 
     np.testing.assert_array_equal(h.T @ h, (q @ q) ** 2 * np.eye(n, dtype=np.int64))
 
 
-def test_mesh_and_poll_size_rules() -> None:
-    opt = optim.Mads(Bounds(np.zeros(2), np.ones(2)), 4, options=MadsOptions(initial_poll_size=0.5))
+def mesh_and_poll_sizes(options: MadsOptions, levels: tuple[int, ...]) -> list[tuple[float, float]]:
+    opt = optim.Mads(Bounds(np.zeros(2), np.ones(2)), 4, options=options)
     sizes = []
-    for level in (-1, 0, 1, 2, 3):
+    for level in levels:
         opt.level = level
         sizes.append((opt.mesh_size, opt.poll_size))
-    np.testing.assert_allclose(sizes, [(0.5, 1.0), (0.5, 0.5), (0.125, 0.25), (0.5 / 16, 0.125), (0.5 / 64, 0.0625)])
-    assert opt.min_level == -1  # poll size never exceeds the box
+    assert opt.min_level == -int(np.floor(np.log2(1 / options.initial_poll_size)))  # poll size never exceeds the box
+    return sizes
 
 
-def test_poll_points_lie_on_the_mesh_at_the_poll_distance() -> None:
-    opt = optim.Mads(Bounds(np.zeros(4), np.ones(4)), 8)
+def test_mesh_and_poll_size_rules() -> None:
+    # mesh_scale = s0: OrthoMADS's δm = s0 min(1, 4^-ℓ), δp = s0 2^-ℓ
+    orthomads = mesh_and_poll_sizes(MadsOptions(initial_poll_size=0.5, mesh_scale=0.5), (-1, 0, 1, 2, 3))
+    np.testing.assert_allclose(orthomads, [(0.5, 1.0), (0.5, 0.5), (0.125, 0.25), (0.5 / 16, 0.125), (0.5 / 64, 0.0625)])
+    # default mesh_scale = 1: δm = min(s0, δp²), finer than the frame by c/δp = 2^ℓ / s0
+    finer = mesh_and_poll_sizes(MadsOptions(initial_poll_size=0.1), (-3, 0, 1, 4))
+    np.testing.assert_allclose(finer, [(0.1, 0.8), (0.01, 0.1), (0.0025, 0.05), (0.1**2 / 256, 0.1 / 16)])
+    assert all(m <= p for m, p in orthomads + finer)
+    with pytest.raises(ValueError, match="mesh_scale"):
+        optim.Mads(Bounds(np.zeros(2), np.ones(2)), 4, options=MadsOptions(initial_poll_size=0.5, mesh_scale=0.25))
+
+
+@pytest.mark.parametrize("options", [MadsOptions(), MadsOptions(initial_poll_size=0.25, mesh_scale=0.25)])
+def test_poll_points_lie_on_the_mesh_at_the_poll_distance(options: MadsOptions) -> None:
+    opt = optim.Mads(Bounds(np.zeros(4), np.ones(4)), 8, options=options)
     for level in range(0, 12, 3):
         opt.level = level
         d = opt.poll_directions()

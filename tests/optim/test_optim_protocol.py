@@ -167,8 +167,9 @@ def test_violation_enters_the_merit_as_an_exact_penalty() -> None:
 
 
 def test_callback_returning_true_stops() -> None:
-    res = optim.run(make("mads"), sphere, 60, callback=lambda opt: opt.evaluations >= 6)
-    assert res.evaluations == 6 and "callback" in res.stop_reason
+    seen: list[int] = []
+    res = optim.run(make("mads"), sphere, 60, callback=lambda opt: seen.append(opt.evaluations) or opt.evaluations >= 6)
+    assert "callback" in res.stop_reason and res.evaluations == seen[-1] >= 6 and max(seen[:-1]) < 6
 
 
 def test_padded_objective_sees_exactly_num_envs_rows() -> None:
