@@ -20,8 +20,8 @@ factor 4 per level. c = s0 is OrthoMADS's rule δm = s0 · min(1, 4^(-ℓ)). (ou
 c = 1 makes the mesh finer relative to the frame (δp/δm = c/δp instead of s0/δp), as NOMAD 4's
 granular mesh does: with OrthoMADS's rule the first few levels can only poll along (nearly)
 coordinate directions, which on our inverse problems, whose minima lie in oblique valleys
-(τ2 against Sa), cost 1.4× (N) and 1.7× (HF) the evaluations to 3 % (`scripts/bench_optim.py`). ℓ is kept >=
-ℓ_min so that δp <= 1, the width of the box.
+(τ2 against Sa), cost 1.4× (N) and 1.7× (HF) the evaluations to 3 % (`scripts/bench_optim.py`).
+ℓ is kept >= ℓ_min so that δp <= 1, the width of the box.
 
 Poll directions (OrthoMADS §3): the Halton point u_t in [0, 1]^n (bases = first n primes) gives
 the adjusted direction q = round(α (2u_t - e)/||2u_t - e||), with α the largest value such that
@@ -151,12 +151,13 @@ def householder_basis(q: NDArray[np.int64]) -> NDArray[np.int64]:
 class MadsOptions:
     """OrthoMADS settings; sizes are fractions of the box width (unit-cube units).
 
-    initial_poll_size: s0, the first poll's distance (0.1, as NOMAD 4's initial frame).
+    initial_poll_size: s0, the first poll's distance (0.1: NOMAD's default initial size, 10 % of
+    the range; 0.25 cost 1.2–1.8× the evaluations to 3 % on the built-in patients).
     mesh_scale: c in δm = min(s0, δp²/c), >= s0 (see the module docstring; c = s0 is
     OrthoMADS's mesh).
     n_search: search points per iteration: the GP mean's minimiser, then kriging-believer EI
-    points. Default 1 (the minimiser alone): on the built-in patients the EI points cut the
-    success rate of a batch and cost 1.7–2× the evaluations to 3 % (`scripts/bench_optim.py`).
+    points. Default 1 (the minimiser alone): on the built-in patients, EI points filling the
+    batch cost 1.7–2× the evaluations to 3 % (`scripts/bench_optim.py`).
     None fills the batch: max(2, batch_size - n_poll) with n_poll = 2n (+ 2 secondary poll
     points under the barrier). With batch_size >= n_poll + n_search an iteration is one step.
     gp_points: the GP is fitted to at most this many evaluated points nearest the incumbent.
