@@ -333,9 +333,12 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
         stalled = c["plain"] & jnp.isfinite(c["change"]) & (change >= c["change"])  # a plain beat's change did not fall since the last one
         x1, f1, x2, _, count = c["hist"]
         hist = _select(accept, (x, y1, x1, f1, jnp.minimum(count + 1, 2)), c["hist"])
-        jump = _anderson(x, y1, c["hist"], scale)
-        usable = jnp.all(jnp.isfinite(jump), axis=0) & jnp.all(jnp.abs(jump - y1) <= _MAX_JUMP * scale, axis=0)
-        extrapolate = accept & c["accelerate"] & ~stalled & c["plain"] & (count >= 1) & usable & (change > _MIN_CHANGE * rtol)
+        if acceleration == "anderson":
+            jump = _anderson(x, y1, c["hist"], scale)
+            usable = jnp.all(jnp.isfinite(jump), axis=0) & jnp.all(jnp.abs(jump - y1) <= _MAX_JUMP * scale, axis=0)
+            extrapolate = accept & c["accelerate"] & ~stalled & c["plain"] & (count >= 1) & usable & (change > _MIN_CHANGE * rtol)
+        else:  # no extrapolation to compute per beat
+            jump, extrapolate = y1, jnp.zeros_like(accept)
         new = {
             "n": c["n"] + 1,
             "y": _select(accept, y1, c["y"]),
