@@ -48,6 +48,7 @@ from lvenv.identification import ACTION_BOUNDS
 from lvenv.metrics import METRIC_NAMES, display, header
 from lvenv.params import field_names
 from lvenv.patients import BUILTIN, Patient, builtin
+from lvenv.plausibility import report as plausibility_report
 from lvenv.env.core import ENV_SCHEME
 from lvenv.simulation import SCHEMES, Traces, simulate
 from lvenv.status import is_usable
@@ -63,7 +64,7 @@ _err = Console(stderr=True, highlight=False)
 
 def _out() -> Console:
     """Standard output: the terminal's width, or wide enough for every column when piped."""
-    return Console(highlight=False, width=None if sys.stdout.isatty() else 240)
+    return Console(highlight=False, width=None if sys.stdout.isatty() else 300)
 
 
 @contextmanager
@@ -95,7 +96,7 @@ def _print_json(payload) -> None:
 
 def _metrics_table(title: str, rows: Sequence[tuple[str, dict[str, float], str]]) -> Table:
     table = Table(title=title, title_justify="left")
-    table.add_column("case")
+    table.add_column("case", no_wrap=True)
     for key in METRIC_NAMES:
         table.add_column(header(key), justify="right")
     table.add_column("status")
@@ -267,6 +268,8 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
               help="ROS2 steps per cardiac cycle of the fixed-step simulations (lm, the fitted beat, --scheme fixed)")
 @click.option("--scheme", type=click.Choice(SCHEMES), default=ENV_SCHEME, show_default=True,
               help="integration scheme of the optimisers' env: step-size control, or --steps-per-beat equal steps")
+@click.option("--plausibility/--no-plausibility", default=True, show_default=True,
+              help="keep mean atrial pressure and EDP within 4–25 mmHg in the objective (lvenv.plausibility)")
 @click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
 @click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
@@ -274,7 +277,8 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--convergence", "convergence_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
               help="write the best mismatch against evaluations (.png or .pdf)")
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
-def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, identifiability, fidelity, fidelity_mesh, plot_path, convergence_path, as_json) -> int:
+def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, plausibility, identifiability, fidelity, fidelity_mesh, plot_path,
+                convergence_path, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets."""
     from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
     from optim.minimize import minimize
@@ -285,9 +289,9 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 
         compile_time = 0.0  # compiled during the first evaluation, inside wall_time
         with _working("fitting by least squares"):
-            res = fit_lm(record, budget=budget, seed=seed, steps_per_beat=steps_per_beat)
+            res = fit_lm(record, budget=budget, seed=seed, steps_per_beat=steps_per_beat, plausibility=plausibility)
     else:
-        venv = make_env(record, num_envs, steps_per_beat, scheme=scheme)
+        venv = make_env(record, num_envs, steps_per_beat, scheme=scheme, plausibility=plausibility)
         with _working("compiling the model"):
             compile_time = warm_up(venv)
         res = minimize(venv, method, budget=budget, seed=seed, progress=_err.is_terminal, **DEFAULT_OPTIONS.get(method, {}))
@@ -295,7 +299,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     ok = is_usable(res.status) and math.isfinite(res.mismatch)
     payload = {"patient": record.name, "method": method, "parameters": res.parameters, "targets": res.targets,
                "observation": res.observation, "mismatch": res.mismatch, "mismatch_per_target": res.mismatch_per_target,
-               "status": res.status, "evaluations": res.evaluations, "wall_time_s": res.wall_time, "compile_time_s": compile_time}
+               "status": res.status, "evaluations": res.evaluations, "wall_time_s": res.wall_time, "compile_time_s": compile_time,
+               "plausibility": plausibility_report(res.observation, plausibility)}
     heart = record.heart.replace(**res.parameters) if ok else None
     if convergence_path is not None:
         plots.convergence_figure({method: res.history.best_mismatch_so_far()}, convergence_path, f"{record.name}: {method}, {num_envs} envs")
@@ -326,6 +331,13 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     for key, target in res.targets.items():
         targets.add_row(header(key), display(key, target), display(key, res.observation[key]), f"{100 * res.relative_error[key]:+.2f}")
     out.print(targets)
+    bands = Table(title="plausibility (unmeasured)", title_justify="left")
+    for col in ("quantity", "fit", "band", ""):
+        bands.add_column(col, justify="right")
+    for key, check in payload["plausibility"].items():
+        bands.add_row(header(key), display(key, res.observation[key]), f"{check['low']:g}–{check['high']:g}",
+                      "inside" if check["inside"] else "OUTSIDE", style=None if check["inside"] else "red")
+    out.print(bands)
     if "identifiability" in payload:
         ident = payload["identifiability"]
         out.print("singular values of the noise-scaled sensitivity (optim.identify; χ per unit-cube step): " + ", ".join(f"{v:.3g}" for v in ident["singular_values"]))

@@ -17,7 +17,10 @@ before filling, undoes the preceding closing. Two events within one step keep th
     filling_time = T − (t_mvo − t_mvc),  SV = EDV − ESV,  EF = SV / EDV,  CO = SV / T.
 
 Aortic pressures over the beat: systolic max, diastolic min, mean (trapezoidal time average),
-pulse = sys − dia; peak P_lv is the beat maximum. A beat without the full event sequence, or
+pulse = sys − dia; peak P_lv is the beat maximum. Filling pressures: EDP = P_lv(t_mvc), taken
+as the interpolated P_at (equal where the mitral valve closes, and smooth there while P_lv rises
+steeply; P_lv at the onset if the valve is already closed), and the mean atrial pressure P_at_mean (trapezoidal time
+average; the constant ``Pat`` in an open loop). A beat without the full event sequence, or
 whose "ejection" does not reduce the volume (SV < 0: both valves open at once, which happens
 only in degenerate circulations such as R3 → 0 with P_c < P_at), is marked invalid and its
 metrics are masked by the caller.
@@ -42,9 +45,11 @@ class Accumulator:
     g_mv: jax.Array
     g_ao: jax.Array
     v: jax.Array
+    p_at: jax.Array
     p_ao: jax.Array
     t_mvc: jax.Array
     v_mvc: jax.Array
+    p_mvc: jax.Array
     t_avo: jax.Array
     t_avc: jax.Array
     v_avc: jax.Array
@@ -54,6 +59,7 @@ class Accumulator:
     p_ao_max: jax.Array
     p_ao_min: jax.Array
     p_ao_integral: jax.Array
+    p_at_integral: jax.Array
 
 
 def start(t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
@@ -61,10 +67,10 @@ def start(t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
     zero = jnp.zeros_like(v)
     closed = p_at - p_lv < 0.0
     return Accumulator(
-        t=t + zero, g_mv=p_at - p_lv, g_ao=p_lv - p_c, v=v, p_ao=p_ao,
-        t_mvc=t + zero, v_mvc=jnp.where(closed, v, zero), t_avo=zero, t_avc=zero, v_avc=zero, t_mvo=zero,
+        t=t + zero, g_mv=p_at - p_lv, g_ao=p_lv - p_c, v=v, p_at=p_at + zero, p_ao=p_ao,
+        t_mvc=t + zero, v_mvc=jnp.where(closed, v, zero), p_mvc=jnp.where(closed, p_lv, zero), t_avo=zero, t_avc=zero, v_avc=zero, t_mvo=zero,
         found=jnp.where(closed, 1, 0).astype(jnp.int32),
-        p_lv_max=p_lv, p_ao_max=p_ao, p_ao_min=p_ao, p_ao_integral=zero,
+        p_lv_max=p_lv, p_ao_max=p_ao, p_ao_min=p_ao, p_ao_integral=zero, p_at_integral=zero,
     )
 
 
@@ -105,9 +111,10 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
     t_avc = jnp.where(take_avc, jnp.maximum(acc.t + f_avc * dt, t_avo), acc.t_avc)
     t_mvo = jnp.where(take_mvo, jnp.maximum(acc.t + f_mvo * dt, t_avc), acc.t_mvo)
     return Accumulator(
-        t=t, g_mv=g_mv, g_ao=g_ao, v=v, p_ao=p_ao,
+        t=t, g_mv=g_mv, g_ao=g_ao, v=v, p_at=p_at, p_ao=p_ao,
         t_mvc=t_mvc,
         v_mvc=jnp.where(take_mvc, lerp(acc.v, v, f_mvc), acc.v_mvc),
+        p_mvc=jnp.where(take_mvc, lerp(acc.p_at, p_at, f_mvc), acc.p_mvc),  # = P_lv there; P_at is the smooth one
         t_avo=t_avo,
         t_avc=t_avc,
         v_avc=jnp.where(take_avc, lerp(acc.v, v, f_avc), acc.v_avc),
@@ -117,6 +124,7 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
         p_ao_max=jnp.maximum(acc.p_ao_max, p_ao),
         p_ao_min=jnp.minimum(acc.p_ao_min, p_ao),
         p_ao_integral=acc.p_ao_integral + 0.5 * dt * (acc.p_ao + p_ao),
+        p_at_integral=acc.p_at_integral + 0.5 * dt * (acc.p_at + p_at),
     )
 
 
@@ -140,6 +148,8 @@ def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
         "P_ao_pulse": acc.p_ao_max - acc.p_ao_min,
         "P_ao_mean": acc.p_ao_integral / period,
         "CO": sv / period,
+        "EDP": acc.p_mvc,
+        "P_at_mean": acc.p_at_integral / period,
     }
     return metrics, valid
 

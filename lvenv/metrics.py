@@ -64,6 +64,8 @@ METRICS: dict[str, Metric] = {
         Metric("P_ao_pulse", "kPa", "aortic pulse pressure sys − dia", "P_ao pulse", "mmHg", MMHG_PER_KPA, (0.0, 400.0), (0.0, 40.0)),
         Metric("P_ao_mean", doc="time-averaged central aortic pressure", label="P_ao mean", **_PRESSURE),
         Metric("CO", "ml/s", "cardiac output SV / T", "CO", "l/min", _ML_S_TO_L_MIN, (0.0, 1e4), (0.0, 1000.0)),
+        Metric("EDP", doc="end-diastolic LV pressure, P_lv at mitral closing", label="EDP", **_PRESSURE),
+        Metric("P_at_mean", doc="time-averaged atrial pressure (the filling pressure)", label="P_at mean", **_PRESSURE),
     )
 }
 
@@ -71,7 +73,8 @@ METRICS: dict[str, Metric] = {
 METRIC_NAMES = tuple(METRICS)
 
 #: Observation vector of the environment (internal units).
-OBS_NAMES = ("EF", "IVCT", "ET", "IVRT", "filling_time", "EDV", "ESV", "P_ao_sys", "P_ao_dia", "P_ao_pulse", "P_ao_mean")
+OBS_NAMES = ("EF", "IVCT", "ET", "IVRT", "filling_time", "EDV", "ESV", "P_ao_sys", "P_ao_dia", "P_ao_pulse", "P_ao_mean", "EDP",
+             "P_at_mean")
 
 
 def header(name: str) -> str:

@@ -48,7 +48,9 @@ gives the same fits, and a resumed run refits nothing.
 Output (:func:`output_columns`): ``id``, the carried-through columns,
 the fitted parameters (internal units, in the column names), ``mismatch`` (weighted mean relative
 error over the row's targets, a fraction), ``mismatch_<target>`` (|relative error| per target),
-the model's values at the fit (``fit_<column>``), ``evaluations``, ``stop``, ``status`` and the
+the model's values at the fit (``fit_<column>``), the unmeasured filling pressures
+``fit_EDP_mmHg`` and ``fit_P_at_mean_mmHg`` (kept within 4–25 mmHg by the objective's
+plausibility bands unless ``CohortOptions.plausibility`` is False), ``evaluations``, ``stop``, ``status`` and the
 input ``line``. Rows are written as patients finish; failed values are empty cells, never zeros.
 """
 
@@ -73,6 +75,7 @@ from lvenv import presets
 from lvenv.env.core import ENV_SCHEME
 from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS, OBS_NAMES, Metric
+from lvenv.plausibility import FILLING
 from lvenv.params import Heart, ranges
 from lvenv.patients import Patient
 from lvenv.simulation import SCHEMES
@@ -279,6 +282,7 @@ class CohortOptions:
     max_beats: int = 12  # beats per member and env step
     confirm_steps: int = 10  # env steps to confirm the best point's steady state, at most
     rtol: float = 1e-4  # steady-state criterion (lvenv.simulate)
+    plausibility: bool = True  # the filling-pressure bands in the objective (lvenv.plausibility)
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -292,6 +296,8 @@ class CohortOptions:
         integer("max_beats", self.max_beats, 1)
         integer("confirm_steps", self.confirm_steps, 1)
         real("rtol", self.rtol, 0.0, 1.0, lo_open=True)
+        if not isinstance(self.plausibility, bool):
+            raise InputError(f"plausibility = {self.plausibility!r} must be True or False")
         integer("seed", self.seed, 0)
 
     def to_dict(self) -> dict[str, Any]:
@@ -406,7 +412,8 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
     lam = options.candidates
     slots = min(options.slots, len(reports))
     queue = collections.deque(reports)
-    venv = make_env([r.patient for r in reports[:slots] for _ in range(lam)], slots * lam, options.steps_per_beat, options.max_beats, options.rtol, options.scheme)
+    venv = make_env([r.patient for r in reports[:slots] for _ in range(lam)], slots * lam, options.steps_per_beat, options.max_beats, options.rtol, options.scheme,
+                    options.plausibility)
     env = venv.unwrapped
     env.reset(seed=0)
     fits: list[_Fit | None] = [None] * slots
@@ -450,12 +457,16 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
     return results
 
 
+#: Unmeasured filling pressures reported per fit (the plausibility bands' quantities).
+_FILLING = tuple(b.metric for b in FILLING)
+
+
 def output_columns(extra_columns: Sequence[str]) -> list[str]:
     """The output CSV's columns for a report file with these carried-through columns."""
     return [
         "id", *extra_columns, *(parameter_column(n) for n in DEFAULT_ACTION_PARAMS), "mismatch",
         *(f"mismatch_{t.label}" for t in TARGETS), *(f"fit_{t.column}" for t in TARGETS), "fit_SBP_central_mmHg",
-        "evaluations", "stop", "status", "line",
+        *(f"fit_{m}_mmHg" for m in _FILLING), "evaluations", "stop", "status", "line",
     ]
 
 
@@ -474,6 +485,7 @@ def _row(result: Mapping[str, Any]) -> dict[str, str]:
         row[f"mismatch_{t.label}"] = _cell(errors.get(t.obs, math.nan)) if math.isfinite(result["mismatch"]) else ""
         row[f"fit_{t.column}"] = _cell(t.metric.to_display(obs[t.obs]))
     row["fit_SBP_central_mmHg"] = _cell(METRICS["P_ao_sys"].to_display(obs["P_ao_sys"]))
+    row.update({f"fit_{m}_mmHg": _cell(METRICS[m].to_display(obs[m])) for m in _FILLING})
     row.update(evaluations=str(result["evaluations"]), stop=result["stop"], status=result["status"], line=str(result["line"]))
     return row
 

@@ -33,6 +33,7 @@ from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS
 from lvenv.patients import Patient, builtin
+from lvenv.plausibility import Band, inside_bands
 from optim.minimize import MinimizeResult, minimize
 
 __all__ = [
@@ -60,14 +61,16 @@ class FitRow(MinimizeResult):
 
 
 def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60,
-             rtol: float = 1e-4, scheme: str = ENV_SCHEME) -> Any:
+             rtol: float = 1e-4, scheme: str = ENV_SCHEME, plausibility: bool | Sequence[Band] = True) -> Any:
     """A vector env set up for optimisation (autoreset Disabled, no tolerance, no truncation).
 
     ``scheme``: the env's integration scheme (:data:`lvenv.simulation.SCHEMES`); ``steps_per_beat``
-    applies to ``scheme="fixed"`` only."""
+    applies to ``scheme="fixed"`` only. ``plausibility``: the objective's physiological bands
+    (:mod:`lvenv.plausibility`; default on)."""
     return gymnasium.make_vec(
         "lvenv/LVHeart-v0", num_envs=num_envs, patient=patient, max_episode_steps=None, tolerance=0.0,
         autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme,
+        plausibility=plausibility,
     )
 
 
@@ -94,12 +97,14 @@ def fit_patients(
     steps_per_beat: int = 500,
     options: Mapping[str, Mapping[str, Any]] | None = None,
     progress: bool | None = False,
+    plausibility: bool | Sequence[Band] = True,
 ) -> list[FitRow]:
-    """Fit every patient with every method; rows in (patient, method) order. See module docstring."""
+    """Fit every patient with every method; rows in (patient, method) order. See module docstring.
+    ``plausibility``: the objective's physiological bands (:mod:`lvenv.plausibility`)."""
     rows: list[FitRow] = []
     for p in patients:
         patient = _patient(p)
-        venv = make_env(patient, num_envs, steps_per_beat)
+        venv = make_env(patient, num_envs, steps_per_beat, plausibility=plausibility)
         compile_time = warm_up(venv)
         for method in methods:
             opts = {**DEFAULT_OPTIONS.get(method, {}), **dict((options or {}).get(method, {}))}
@@ -226,10 +231,8 @@ class RecoveryReport:
 
 def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Random parameter sets (log-uniform on log axes) whose hearts simulate cleanly with EF in
-    [0.3, 0.75] and mean aortic pressure inside the 80–120 mmHg band (so an exact fit exists),
+    [0.3, 0.75] and every plausibility band met (:mod:`lvenv.plausibility`, so an exact fit exists),
     simulated with the env's scheme (adaptive, Anderson-accelerated) that will fit them."""
-    from lvenv.env.core import BAND_KPA
-
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     truths, obs = [], []
     while len(truths) < n_sets:
@@ -238,7 +241,7 @@ def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: 
                              scheme=ENV_SCHEME, acceleration=ENV_ACCELERATION, max_beats=60, traces=False)
         m = sim.metrics
         good = np.asarray(sim.status) == "ok"
-        good &= (m["EF"] > 0.3) & (m["EF"] < 0.75) & (m["P_ao_mean"] > BAND_KPA[0]) & (m["P_ao_mean"] < BAND_KPA[1])
+        good &= (m["EF"] > 0.3) & (m["EF"] < 0.75) & inside_bands(m)
         for i in np.flatnonzero(good)[: n_sets - len(truths)]:
             truths.append(x[i])
             obs.append([float(m[t][i]) for t in targets])

@@ -23,12 +23,17 @@ state. With Δ = 3.84 (the 95 % point of χ² with one degree of freedom), each 
   bound, and the parameter has a component above 0.1 in a null direction of the sensitivity;
 * ``no usable fit``: every constrained fit of it failed.
 
+The constrained fits' objective also holds the env's plausibility bands (:mod:`lvenv.plausibility`,
+``CohortOptions.plausibility``), which are 0 wherever the filling pressures are physiological.
 Profiles are as good as the constrained fits: a fit stuck above its true minimum raises the
 profile at that grid point. Use a larger ``budget`` where profiles look ragged.
 
 :func:`posterior`: samples of p(θ | targets) ∝ exp(−χ²(θ)/2) · prior(θ), with the prior uniform
 in the unit cube of the identification bounds (log-uniform on log axes: weak, inside the physical
-bounds). Sampler: the ensemble sampler of ``emcee`` (Foreman-Mackey D et al., PASP 125:306,
+bounds) and, with ``plausibility`` (default), the factor exp(−½ Σ_b (d_b / 5 mmHg)²) over the
+filling-pressure bands b of :mod:`lvenv.plausibility` (d_b: how far the mean atrial pressure or
+EDP lies outside 4–25 mmHg; 5 mmHg is the pressure σ of :data:`NOISE`, :data:`PLAUSIBILITY_SD`).
+Sampler: the ensemble sampler of ``emcee`` (Foreman-Mackey D et al., PASP 125:306,
 2013) with differential-evolution moves by default, vectorised: each half-ensemble of proposals is one step of a
 vector env (:func:`optim.fit.make_env`), so the walkers run through the batched heart. This is
 the issue's fallback sampler; a gradient-based NUTS is not built (see README). Diagnostics:
@@ -49,20 +54,26 @@ import numpy as np
 import lvenv
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.patients import Patient
+from lvenv.plausibility import AORTIC, Band, distance
+from lvenv.plausibility import resolve as resolve_bands
 from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError, integer
 from optim.cohort import CohortOptions, Report, fit_reports
 
-__all__ = ["NOISE", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
+__all__ = ["NOISE", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
            "probability_lower", "chi2"]
 
 #: Standard deviation of each target's measurement error, internal units (ours, illustrative):
-#: EF 0.05, time intervals 10 ms, pressures 5 mmHg, volumes 5 ml.
+#: EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included), volumes 5 ml.
 NOISE: dict[str, float] = {
     "EF": 0.05, "IVCT": 0.010, "ET": 0.010, "IVRT": 0.010, "filling_time": 0.010,
     "P_ao_sys": float(mmhg_to_kpa(5.0)), "P_ao_dia": float(mmhg_to_kpa(5.0)), "P_ao_mean": float(mmhg_to_kpa(5.0)),
     "P_ao_pulse": float(mmhg_to_kpa(5.0)), "P_lv_peak": float(mmhg_to_kpa(5.0)), "EDV": 5.0, "ESV": 5.0, "SV": 5.0,
+    "EDP": float(mmhg_to_kpa(5.0)), "P_at_mean": float(mmhg_to_kpa(5.0)),
 }
+#: Standard deviation (kPa) of the posterior's plausibility factor: 5 mmHg outside a filling band
+#: costs as much as a pressure measured 1 σ off.
+PLAUSIBILITY_SD = float(mmhg_to_kpa(5.0))
 #: 95 % point of χ² with one degree of freedom: the profile-likelihood threshold.
 DELTA_95 = 3.84
 #: A profile whose range stays below this (χ² units) over the whole bound is flat.
@@ -252,6 +263,7 @@ def posterior(
     steps_per_beat: int = 500,
     max_beats: int = 60,
     moves: Any = "de",
+    plausibility: bool | Sequence[Band] = True,
 ) -> Posterior:
     """Sample the posterior of :data:`DEFAULT_ACTION_PARAMS` for ``patient`` (module docstring).
 
@@ -261,7 +273,8 @@ def posterior(
     ``moves``: ``"de"`` (default: differential-evolution moves, 80 % ``DEMove`` and 20 %
     ``DESnookerMove``, ter Braak & Vrugt 2008) or any ``moves`` emcee takes (``None``: its stretch
     move). On the built-in N patient, 32 walkers × 1000 steps, "de" reached split R-hat 1.09–1.15
-    against 1.34–1.77 for the stretch move.
+    against 1.34–1.77 for the stretch move. ``plausibility``: the filling-pressure bands as a prior
+    factor (module docstring; :func:`lvenv.plausibility.resolve`).
     """
     import emcee
 
@@ -275,6 +288,7 @@ def posterior(
     sigma = _sigma(patient, noise)
     targets = np.array(list(patient.targets.values()))
     target_names = list(patient.targets)
+    bands = [b for b in resolve_bands(plausibility) if b is not AORTIC]
     venv = make_env(patient, walkers // 2, steps_per_beat, max_beats)
     venv.reset(seed=seed)
     action_map = venv.unwrapped.config.actions
@@ -293,6 +307,7 @@ def posterior(
             obs = np.stack([np.asarray(info[k], float) for k in target_names], axis=1)[: len(rows)]
             ok = np.isin(info["status"][: len(rows)], ("ok", "not_converged")) & np.all(np.isfinite(obs), axis=1)
             value = -0.5 * np.sum(((obs - targets) / sigma) ** 2, axis=1)
+            value -= 0.5 * sum((np.asarray(distance(b, info[b.metric][: len(rows)])) / PLAUSIBILITY_SD) ** 2 for b in bands)
             out[block] = np.where(ok & inside[block], value, -np.inf)
             counts["evaluations"] += len(rows)
             counts["failed"] += int(np.sum(~ok))

@@ -2,9 +2,10 @@
 
 `fit_lm(patient)` minimises the env's objective (`optim.minimize`) written as a sum of squares,
 
-    f(θ) = Σ_k r_k²,   r_k = sqrt(w_k / Σ w) (o_k − t_k) / t_k,   plus r_band = sqrt(κ) d / P_lo,
+    f(θ) = Σ_k r_k²,   r_k = sqrt(w_k / Σ w) (o_k − t_k) / t_k,   plus r_b = d_b / s_b per band b,
 
-over the identification parameters (default τ2, Sa, R2, R3, C, Cat) in the unit cube of
+with the plausibility bands b of :mod:`lvenv.plausibility` (``plausibility``, default on), over
+the identification parameters (default τ2, Sa, R2, R3, C, Cat) in the unit cube of
 `lvenv.identification.ParameterSpace` (log axes where marked), with `scipy.optimize.least_squares`
 (trust-region reflective, bounds [0, 1], `x_scale="jac"`). Residuals are those of the steady
 state of `lvenv.simulate` from a cold start (rtol 1e-6); their Jacobian comes from
@@ -35,10 +36,10 @@ import numpy as np
 from scipy import optimize, stats
 
 import lvenv
-from lvenv.env.core import BAND_KPA, BAND_WEIGHT
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import OBS_NAMES
 from lvenv.patients import Patient, builtin
+from lvenv.plausibility import Band, distance, resolve
 from lvenv.validation import integer
 from optim.minimize import MinimizeResult, _result
 from optim.protocol import History, OptimResult
@@ -51,14 +52,15 @@ FAILED_RESIDUAL = 10.0
 class _Problem:
     """Residuals and their Jacobian at unit-cube points, cached per point, with a record of each."""
 
-    def __init__(self, patient: Patient, space: ParameterSpace, steps_per_beat: int, max_beats: int) -> None:
-        self.patient, self.space = patient, space
+    def __init__(self, patient: Patient, space: ParameterSpace, steps_per_beat: int, max_beats: int,
+                 bands: tuple[Band, ...]) -> None:
+        self.patient, self.space, self.bands = patient, space, bands
         self.targets = list(patient.targets)
         weights = np.array([patient.weight(k) for k in self.targets])
         weights = weights / weights.max()
         self.sqrt_w = np.sqrt(weights / weights.sum())
         self.t = np.array([patient.targets[k] for k in self.targets])
-        self.metrics = tuple(dict.fromkeys([*self.targets, "P_ao_mean"]))
+        self.metrics = tuple(dict.fromkeys([*self.targets, *(b.metric for b in bands), *OBS_NAMES]))
         self.settings = {"steps_per_beat": steps_per_beat, "max_beats": max_beats}
         self.records: list[dict[str, np.ndarray]] = []
         self.elapsed: list[float] = []  # s from the fit's start to the end of each evaluation
@@ -74,19 +76,21 @@ class _Problem:
         heart = self.patient.heart.replace(**dict(zip(self.space.names, map(float, x))))
         jac = lvenv.jacobian(heart, wrt=self.space.names, metrics=self.metrics, **self.settings)
         ok = jac.status == "ok"
-        n_res = len(self.targets) + 1
+        n_res = len(self.targets) + len(self.bands)
         if ok:
             m = np.array([jac.metrics_at[k] for k in self.targets])
             rel = (m - self.t) / self.t
-            p_mean = jac.metrics_at["P_ao_mean"]
-            below, above = BAND_KPA[0] - p_mean, p_mean - BAND_KPA[1]
-            d = max(0.0, below, above)
-            residual = np.append(self.sqrt_w * rel, np.sqrt(BAND_WEIGHT) * d / BAND_KPA[0])
             d_metrics = jac.values * self.space.rate(x)[None, :]  # (m, k) per unit-cube coordinate
             rows = [self.sqrt_w[i] / self.t[i] * d_metrics[self.metrics.index(k)] for i, k in enumerate(self.targets)]
-            d_band = d_metrics[self.metrics.index("P_ao_mean")] * (-1.0 if below > 0 else 1.0 if above > 0 else 0.0)
-            jacobian = np.vstack([*rows, np.sqrt(BAND_WEIGHT) * d_band / BAND_KPA[0]])
-            obs = np.array([jac.metrics_at.get(k, np.nan) for k in OBS_NAMES])
+            band_res, band_rows = [], []
+            for b in self.bands:
+                value = jac.metrics_at[b.metric]
+                side = -1.0 if value < b.low else 1.0 if value > b.high else 0.0  # d d_b / d o_b
+                band_res.append(float(distance(b, value)) / b.scale)
+                band_rows.append(side / b.scale * d_metrics[self.metrics.index(b.metric)])
+            residual = np.concatenate([self.sqrt_w * rel, band_res])
+            jacobian = np.vstack([*rows, *band_rows])
+            obs = np.array([jac.metrics_at[k] for k in OBS_NAMES])
             mismatch = float(np.sum(self.sqrt_w**2 * np.abs(rel)) / np.sum(self.sqrt_w**2))
         else:
             residual, jacobian = np.full(n_res, FAILED_RESIDUAL), np.zeros((n_res, self.space.dimension))
@@ -116,14 +120,16 @@ def fit_lm(
     bounds: Mapping[str, tuple[float, float]] | None = None,
     steps_per_beat: int = 1000,
     max_beats: int = 200,
+    plausibility: bool | Sequence[Band] = True,
 ) -> MinimizeResult:
     """Fit ``names`` of ``patient`` (a built-in name or a Patient) by multi-start least squares
     (module docstring). ``budget``: steady-state evaluations over all starts (each with its
-    Jacobian); ``starts``: at most this many starts."""
+    Jacobian); ``starts``: at most this many starts; ``plausibility``: the objective's bands
+    (:func:`lvenv.plausibility.resolve`)."""
     patient = builtin(patient) if isinstance(patient, str) else patient
     budget, starts, seed = integer("budget", budget, 1), integer("starts", starts, 1), integer("seed", seed, 0)
     space = ParameterSpace.for_names(names, bounds)
-    problem = _Problem(patient, space, steps_per_beat, max_beats)
+    problem = _Problem(patient, space, steps_per_beat, max_beats, resolve(plausibility))
     own = space.to_unit(space.clip(np.array([float(patient.heart.get(n)) for n in space.names])))
     spread = stats.qmc.LatinHypercube(space.dimension, seed=seed).random(max(starts - 1, 1))
     points = np.vstack([own, spread])[:starts]

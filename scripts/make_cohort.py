@@ -5,8 +5,9 @@ cube of the identification bounds (log-uniform on log axes), on the base heart
 (`presets.normal()`). Its closed-loop steady state at 1000 steps per beat (finer than the fit's
 500) gives the report, rounded as reports are (EF to 1 %, times to 1 ms, pressures to 1 mmHg);
 the cuff pressures are those that `optim.cohort.cuff_targets` maps back to the central diastolic
-and mean pressure. A draw is kept when its beat is `ok`, EF is in [0.2, 0.8] and the mean
-pressure is in the env's 80–120 mmHg band, so that an exact fit exists; the acceptance rate is
+and mean pressure. A draw is kept when its beat is `ok`, EF is in [0.2, 0.8] and every
+plausibility band of the env holds (`lvenv.plausibility`: mean aortic pressure 80–120 mmHg,
+mean atrial pressure and EDP 4–25 mmHg), so that an exact fit exists; the acceptance rate is
 printed. The truths are carried in `true_<parameter column>` columns (carried through by the fit).
 
 `--bad-fraction` corrupts that fraction of the rows in turn in one of `BAD_KINDS` ways (a missing
@@ -30,8 +31,8 @@ import numpy as np
 
 import lvenv
 from lvenv import presets
-from lvenv.env.core import BAND_KPA
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
+from lvenv.plausibility import inside_bands
 from optim.cohort import REQUIRED, cuff_from_central, parameter_column
 
 BAD_KINDS = ("missing", "text", "ef_over_100", "negative_duration", "dbp_above_sbp", "repeated_id", "heart_rate", "short_row")
@@ -51,7 +52,7 @@ def draw(n: int, seed: int, batch: int = 256) -> tuple[list[dict[str, object]], 
         sim = lvenv.simulate(hearts, steps_per_beat=1000, max_beats=200, traces=False)
         m = sim.metrics
         good = (np.asarray(sim.status) == "ok") & (m["EF"] >= 0.2) & (m["EF"] <= 0.8)
-        good &= (m["P_ao_mean"] > BAND_KPA[0]) & (m["P_ao_mean"] < BAND_KPA[1])
+        good &= inside_bands(m)
         tried += batch
         for i in np.flatnonzero(good):
             if len(rows) == n:

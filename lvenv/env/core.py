@@ -17,10 +17,11 @@ to reach steady state does.
 Reward (per member), with relative errors e_k = (o_k − t_k) / t_k over the patient's targets and
 weights w_k normalised so that max_k w_k = 1 (host-side, :func:`env_params`)::
 
-    r = − Σ_k w_k e_k² / Σ_k w_k  −  κ (d / P_lo)²,
-    d = max(0, P_lo − P_ao_mean, P_ao_mean − P_hi),   [P_lo, P_hi] = [80, 120] mmHg, κ = 1
+    r = − Σ_k w_k e_k² / Σ_k w_k  −  Σ_b κ (d_b / s_b)²,   d_b = max(0, lo_b − o_b, o_b − hi_b),
 
-computed on the noise-free model output. ``mismatch`` = Σ_k w_k |e_k| / Σ_k w_k; an episode
+computed on the noise-free model output, over the plausibility bands b in force
+(:mod:`lvenv.plausibility`: mean aortic pressure 80–120 mmHg always, s = 80 mmHg; by default also
+mean atrial pressure and EDP 4–25 mmHg, s = 25 mmHg; ``Config.plausibility``). ``mismatch`` = Σ_k w_k |e_k| / Σ_k w_k; an episode
 terminates when it falls below the tolerance, or when the simulation fails or the action is not
 finite (reward :data:`FAILURE_REWARD`, mismatch +inf). A failed member's observation is all
 zeros (inside the observation space) and its named metrics in ``info["metrics"]`` are NaN; its
@@ -42,16 +43,13 @@ from lvenv.env.spaces import ActionMap
 from lvenv.metrics import OBS_NAMES
 from lvenv.model import IDX_PAT, IDX_PC, IDX_V, ModelParams
 from lvenv.params import stack
+from lvenv.plausibility import Band, penalty, resolve
 from lvenv.simulation import DEFAULT_STEP_TOL, run_beats_parallel
 from lvenv.status import INVALID_ACTION, is_usable
-from lvenv.units import mmhg_to_kpa
 
 __all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "FAILURE_REWARD", "ENV_SCHEME", "ENV_ACCELERATION"]
 
 FAILURE_REWARD = -10.0
-BAND_KPA = (mmhg_to_kpa(80.0), mmhg_to_kpa(120.0))
-BAND_WEIGHT = 1.0
-_I_MEAN = OBS_NAMES.index("P_ao_mean")
 
 
 @jax.tree_util.register_dataclass
@@ -93,6 +91,7 @@ class Config:
     tolerance: float = 1e-3
     max_episode_steps: int | None = None
     obs_noise: tuple[float, ...] | None = None  # relative std of the measurement noise per observation
+    plausibility: tuple[Band, ...] = resolve(True)  # the bands of the reward (lvenv.plausibility.resolve)
     autoreset: bool = True  # NEXT_STEP autoreset; False: DISABLED (ended members keep being evaluated)
 
 
@@ -119,15 +118,13 @@ def _observation(metrics: jax.Array, usable: jax.Array) -> jax.Array:
     return jnp.where(usable[:, None], metrics, 0.0)
 
 
-def _score(obs: jax.Array, params: EnvParams):
+def _score(obs: jax.Array, params: EnvParams, config: Config):
     targets, weights = params.targets.T, params.weights.T
     rel = (obs - targets) / targets
     wsum = jnp.sum(weights, axis=1)
     mse = jnp.sum(weights * rel**2, axis=1) / wsum
     mismatch = jnp.sum(weights * jnp.abs(rel), axis=1) / wsum
-    p_mean = obs[:, _I_MEAN]
-    d = jnp.maximum(0.0, jnp.maximum(BAND_KPA[0] - p_mean, p_mean - BAND_KPA[1]))
-    return -(mse + BAND_WEIGHT * (d / BAND_KPA[0]) ** 2), mismatch
+    return -(mse + penalty(dict(zip(OBS_NAMES, obs.T)), config.plausibility)), mismatch
 
 
 def _noisy(obs: jax.Array, key: jax.Array, config: Config) -> jax.Array:
@@ -169,7 +166,7 @@ def step(key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams, 
     y_start = _conserve_volume(y_start, params.y_cold, heart)
     out = _evaluate(heart, y_start, config)
     metrics = _observe(out)
-    reward, mismatch = _score(metrics, params)
+    reward, mismatch = _score(metrics, params, config)
     sim_ok = is_usable(out["status"])
     invalid = ~finite & ~fresh
     failed = (~sim_ok | invalid) & ~fresh

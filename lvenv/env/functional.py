@@ -35,6 +35,8 @@ from lvenv.env import core
 from lvenv.env.spaces import ActionMap, NamedBox, observation_space
 from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.patients import resolve
+from lvenv.plausibility import Band
+from lvenv.plausibility import resolve as resolve_bands
 from lvenv.simulation import DEFAULT_STEP_TOL, check_settings
 from lvenv.validation import integer, real
 
@@ -65,6 +67,7 @@ class LVHeart:
     tolerance: float = 1e-3
     max_episode_steps: int | None = None
     obs_noise: float = 0.0
+    plausibility: bool | tuple[Band, ...] = True  # the reward's bands (lvenv.plausibility.resolve)
 
     def __post_init__(self) -> None:
         settings = check_settings(steps_per_beat=self.steps_per_beat, max_beats=self.max_beats, rtol=self.rtol, scheme=self.scheme, step_tol=self.step_tol,
@@ -76,7 +79,7 @@ class LVHeart:
         object.__setattr__(self, "_config", core.Config(
             actions=actions, **settings, tolerance=real("tolerance", self.tolerance, 0.0), max_episode_steps=max_steps,
             obs_noise=None if real("obs_noise", self.obs_noise, 0.0) == 0.0 else (float(self.obs_noise),) * len(observation_space().names),
-            autoreset=False,
+            autoreset=False, plausibility=resolve_bands(self.plausibility),
         ))
 
     @property

@@ -27,6 +27,8 @@ from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.metrics import OBS_NAMES
 from lvenv.model import N_STATES
 from lvenv.patients import Patient, resolve
+from lvenv.plausibility import Band
+from lvenv.plausibility import resolve as resolve_bands
 from lvenv.simulation import DEFAULT_STEP_TOL, check_settings
 from lvenv.validation import InputError, choice, integer, real, real_array
 
@@ -89,6 +91,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
             by default (``steps_per_beat`` then only matters for ``render``).
         autoreset_mode: ``NEXT_STEP`` (default) or ``DISABLED`` (every step evaluates every
             member's action; what optimisers use).
+        plausibility: the reward's physiological bands (:mod:`lvenv.plausibility`): ``True``
+            (default: mean aortic pressure, and mean atrial pressure and EDP 4–25 mmHg),
+            ``False`` (the aortic band only) or a sequence of ``Band``.
 
     Every argument is checked here; a bad one raises ``ValueError`` naming it, its value and
     what is allowed. ``step`` takes actions of shape exactly ``(num_envs, len(action_params))``.
@@ -113,6 +118,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         acceleration: str = core.ENV_ACCELERATION,
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        plausibility: bool | Sequence[Band] = True,
     ):
         num_envs = integer("num_envs", num_envs, 1)
         choice("render_mode", render_mode, (None, "rgb_array"))
@@ -138,6 +144,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
             max_episode_steps=max_episode_steps,
             obs_noise=tuple(map(float, noise)) if np.any(noise > 0) else None,
             autoreset=autoreset_mode == AutoresetMode.NEXT_STEP,
+            plausibility=resolve_bands(plausibility),
         )
         self.single_action_space = self.config.actions.box()
         self.action_space = batch_space(self.single_action_space, num_envs)

@@ -97,6 +97,11 @@ def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_f
     assert set(payload["parameters"]) == {"tau2", "Sa", "R2", "R3", "C", "Cat"}
     assert payload["evaluations"] == 16 and payload["status"] in ("ok", "not_converged")
     assert set(payload["mismatch_per_target"]) == set(payload["targets"]) and payload["compile_time_s"] > 0
+    bands = payload["plausibility"]
+    assert set(bands) == {"P_ao_mean", "P_at_mean", "EDP"}
+    for name, check in bands.items():
+        assert check["inside"] == (check["low"] <= check["value"] <= check["high"]), name
+        assert check["value"] == pytest.approx(7.50062 * payload["observation"][name]), "mmHg"
     ident = payload["identifiability"]
     assert len(ident["singular_values"]) == 4 and len(ident["null_directions"]) == 2, "4 targets, 6 parameters"
     assert cli.main(["fit", "nobody"]) == cli.EXIT_USAGE

@@ -6,6 +6,7 @@ import pytest
 import lvenv
 from lvenv import presets
 from lvenv.geometry import cavity_volume
+from lvenv.units import kpa_to_mmhg
 from tests.lvenv.reference_lo import simulate_reference
 
 N_SETS = 5
@@ -29,7 +30,9 @@ def random_hearts(seed, closed_loop):
 @pytest.mark.parametrize("closed_loop", [0, 1], ids=["open-loop", "closed-loop"])
 def test_matches_radau_reference(closed_loop, scheme):
     """The accuracy specification, for both schemes at their defaults: EF within 0.5 points,
-    phase durations within 2 ms, pressures within 1 %, EDV / ESV within 0.5 %."""
+    phase durations within 2 ms, pressures within 1 %, EDV / ESV within 0.5 %; and the filling
+    pressures (EDP, mean atrial pressure) within 0.25 mmHg (their largest error here is 0.14 mmHg:
+    the fixed scheme's step across the mitral closing)."""
     hearts = random_hearts(seed=11 + closed_loop, closed_loop=closed_loop)
     beats = 2
     res = lvenv.simulate(hearts, beats=beats, scheme=scheme, traces=scheme == "fixed")
@@ -42,6 +45,8 @@ def test_matches_radau_reference(closed_loop, scheme):
             assert abs(m[key] - ref[key]) < 0.002, (i, key, m[key], ref[key])
         for key in ("P_lv_peak", "P_ao_sys", "P_ao_dia", "P_ao_mean", "P_ao_pulse"):
             assert m[key] == pytest.approx(ref[key], rel=0.01), (i, key)
+        for key in ("EDP", "P_at_mean"):
+            assert kpa_to_mmhg(abs(m[key] - ref[key])) < 0.25, (i, key, m[key], ref[key])
         for key in ("EDV", "ESV"):
             assert m[key] == pytest.approx(ref[key], rel=0.005), (i, key)
 

@@ -100,8 +100,13 @@ def _check_reported_fit_against_an_independent_simulation(result, patient, optio
     heart = patient.heart.replace(**result["parameters"])
     sim = lvenv.simulate(heart, steps_per_beat=options.steps_per_beat, scheme=options.scheme, max_beats=400, traces=False)
     assert sim.status == "ok"
-    errors = [abs(float(sim.metrics[k]) - t) / t for k, t in patient.targets.items()]
-    assert result["mismatch"] == pytest.approx(np.mean(errors), rel=2e-3, abs=2e-4)
+    obs = result["observation"]
+    assert result["mismatch"] == pytest.approx(np.mean([abs(obs[k] - t) / t for k, t in patient.targets.items()]), rel=1e-12)
+    # the same steady state, reached from another start: the adaptive step sequence differs, so
+    # event times agree to a fraction of a millisecond (the scheme's specification is 2 ms)
+    for k in patient.targets:
+        tol = dict(abs=5e-4) if k in ("ET", "IVRT") else dict(rel=1e-3)
+        assert obs[k] == pytest.approx(float(sim.metrics[k]), **tol), k
 
 
 def test_fits_report_the_confirmed_steady_state_and_do_not_depend_on_their_neighbours(reports_csv):

@@ -45,6 +45,7 @@ def test_script_prints_the_table_in_mmhg_and_ms(rows, capsys):
     script.print_fits(rows[0])
     text = capsys.readouterr().out
     assert "tau2 (ms)" in text and "ET (ms)" in text and "P_ao pulse (mmHg)" in text
+    assert "P_at mean (mmHg)" in text and "EDP (mmHg)" in text and "P_at_mean 4–25 mmHg" in text, "the plausibility columns"
     assert "60.0" in text  # EF target of the normal patient, in %
     assert "300.0" in text  # ET target, in ms
 
