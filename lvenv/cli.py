@@ -45,7 +45,7 @@ from rich.table import Table
 from lvenv import jitcache, plots, presets
 from lvenv.geometry import cavity_volume
 from lvenv.identification import ACTION_BOUNDS
-from lvenv.metrics import METRIC_NAMES, display, header
+from lvenv.metrics import SUMMARY_NAMES, display, header
 from lvenv.params import field_names
 from lvenv.patients import BUILTIN, Patient, builtin
 from lvenv.plausibility import report as plausibility_report
@@ -97,12 +97,12 @@ def _print_json(payload) -> None:
 def _metrics_table(title: str, rows: Sequence[tuple[str, dict[str, float], str]]) -> Table:
     table = Table(title=title, title_justify="left")
     table.add_column("case", no_wrap=True)
-    for key in METRIC_NAMES:
+    for key in SUMMARY_NAMES:
         table.add_column(header(key), justify="right")
     table.add_column("status")
     for name, metrics, status in rows:
         style = None if is_usable(status) else "red"
-        table.add_row(name, *(display(k, metrics[k]) for k in METRIC_NAMES), status, style=style)
+        table.add_row(name, *(display(k, metrics[k]) for k in SUMMARY_NAMES), status, style=style)
     return table
 
 
@@ -491,7 +491,7 @@ def oracle_command(heart, case, backend, mesh_size, beats, plot_path, as_json) -
         _print_json({"case": case, "backend": backend, "fe": fe_metrics, "fe_valid": valid, "lo": lo_run.metrics, "lo_status": lo_run.status,
                      "from_cache": result.from_cache, "key": result.metadata.get("key"), "wall_time_s": time.perf_counter() - t0})
         return EXIT_OK if valid else EXIT_FAILED
-    rows = [(f"FE ({backend})", {k: float(fe_metrics.get(k, math.nan)) for k in METRIC_NAMES}, "ok" if valid else "no_valve_cycle"),
+    rows = [(f"FE ({backend})", {k: float(fe_metrics.get(k, math.nan)) for k in SUMMARY_NAMES}, "ok" if valid else "no_valve_cycle"),
             ("LO", lo_run.metrics, lo_run.status)]
     cached = ", cached" if result.from_cache else ""
     _out().print(_metrics_table(f"{heart}, case {case}: last beat ({time.perf_counter() - t0:.1f} s{cached})", rows))

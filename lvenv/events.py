@@ -20,7 +20,10 @@ Aortic pressures over the beat: systolic max, diastolic min, mean (trapezoidal t
 pulse = sys − dia; peak P_lv is the beat maximum. Filling pressures: EDP = P_lv(t_mvc), taken
 as the interpolated P_at (equal where the mitral valve closes, and smooth there while P_lv rises
 steeply; P_lv at the onset if the valve is already closed), and the mean atrial pressure P_at_mean (trapezoidal time
-average; the constant ``Pat`` in an open loop). A beat without the full event sequence, or
+average; the constant ``Pat`` in an open loop). Volume trace: V at the K = :data:`~lvenv.metrics.N_FRAMES`
+frame times t_j = j T / K after the onset (``V_frame_00`` …), linearly interpolated between
+steps, as a retrospectively ECG-gated cine MRI samples the cycle from the R wave (the onset of
+the calcium transient is the electrical activation). A beat without the full event sequence, or
 whose "ejection" does not reduce the volume (SV < 0: both valves open at once, which happens
 only in degenerate circulations such as R3 → 0 with P_c < P_at), is marked invalid and its
 metrics are masked by the caller.
@@ -32,6 +35,8 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+
+from lvenv.metrics import FRAME_NAMES, N_FRAMES
 
 __all__ = ["Accumulator", "start", "update", "finish", "beat_metrics"]
 
@@ -60,10 +65,19 @@ class Accumulator:
     p_ao_min: jax.Array
     p_ao_integral: jax.Array
     p_at_integral: jax.Array
+    t0: jax.Array  # the onset
+    frame: jax.Array  # T / K, the time between frames
+    v_frames: jax.Array  # (K, ...) V at the frame times passed so far (V at the onset before)
 
 
-def start(t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
-    """Open the record at the beat's onset. A mitral valve already closed there closes at t."""
+def _frame_index(v):
+    """0, 1, …, K − 1 along a new leading axis, broadcasting against the members ``v``."""
+    return jnp.arange(N_FRAMES, dtype=v.dtype).reshape((N_FRAMES,) + (1,) * jnp.ndim(v))
+
+
+def start(t, v, p_lv, p_at, p_c, p_ao, period) -> Accumulator:
+    """Open the record at the beat's onset ``t`` of a beat of ``period`` s. A mitral valve
+    already closed there closes at t."""
     zero = jnp.zeros_like(v)
     closed = p_at - p_lv < 0.0
     return Accumulator(
@@ -71,6 +85,7 @@ def start(t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
         t_mvc=t + zero, v_mvc=jnp.where(closed, v, zero), p_mvc=jnp.where(closed, p_lv, zero), t_avo=zero, t_avc=zero, v_avc=zero, t_mvo=zero,
         found=jnp.where(closed, 1, 0).astype(jnp.int32),
         p_lv_max=p_lv, p_ao_max=p_ao, p_ao_min=p_ao, p_ao_integral=zero, p_at_integral=zero,
+        t0=t + zero, frame=period / N_FRAMES + zero, v_frames=jnp.broadcast_to(v, (N_FRAMES, *jnp.shape(v))),
     )
 
 
@@ -110,6 +125,10 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
     t_avo = jnp.where(take_avo, jnp.maximum(acc.t + f_avo * dt, t_mvc), acc.t_avo)
     t_avc = jnp.where(take_avc, jnp.maximum(acc.t + f_avc * dt, t_avo), acc.t_avc)
     t_mvo = jnp.where(take_mvo, jnp.maximum(acc.t + f_mvo * dt, t_avc), acc.t_mvo)
+
+    t_frames = acc.t0 + acc.frame * _frame_index(v)
+    passed = (acc.t < t_frames) & (t_frames <= t)
+    f_frames = jnp.clip((t_frames - acc.t) / jnp.where(dt > 0.0, dt, 1.0), 0.0, 1.0)
     return Accumulator(
         t=t, g_mv=g_mv, g_ao=g_ao, v=v, p_at=p_at, p_ao=p_ao,
         t_mvc=t_mvc,
@@ -125,6 +144,8 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
         p_ao_min=jnp.minimum(acc.p_ao_min, p_ao),
         p_ao_integral=acc.p_ao_integral + 0.5 * dt * (acc.p_ao + p_ao),
         p_at_integral=acc.p_at_integral + 0.5 * dt * (acc.p_at + p_at),
+        t0=acc.t0, frame=acc.frame,
+        v_frames=jnp.where(passed, lerp(acc.v, v, f_frames), acc.v_frames),
     )
 
 
@@ -150,6 +171,7 @@ def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
         "CO": sv / period,
         "EDP": acc.p_mvc,
         "P_at_mean": acc.p_at_integral / period,
+        **dict(zip(FRAME_NAMES, acc.v_frames)),
     }
     return metrics, valid
 
@@ -165,5 +187,5 @@ def beat_metrics(t, v, p_lv, p_at, p_c, p_ao, period) -> tuple[dict[str, jax.Arr
     def fold(acc, sample):
         return update(acc, *sample), None
 
-    acc, _ = jax.lax.scan(fold, start(t[0], v[0], p_lv[0], p_at[0], p_c[0], p_ao[0]), (t[1:], v[1:], p_lv[1:], p_at[1:], p_c[1:], p_ao[1:]))
+    acc, _ = jax.lax.scan(fold, start(t[0], v[0], p_lv[0], p_at[0], p_c[0], p_ao[0], period), (t[1:], v[1:], p_lv[1:], p_at[1:], p_c[1:], p_ao[1:]))
     return finish(acc, period)

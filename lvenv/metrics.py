@@ -17,7 +17,7 @@ import math
 
 from lvenv.units import MMHG_PER_KPA, MS_PER_S
 
-__all__ = ["Metric", "METRICS", "METRIC_NAMES", "OBS_NAMES", "header", "display"]
+__all__ = ["Metric", "METRICS", "METRIC_NAMES", "SUMMARY_NAMES", "N_FRAMES", "FRAME_NAMES", "OBS_NAMES", "header", "display"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,6 +47,11 @@ _VOLUME = dict(units="ml", display_units="ml", scale=1.0, bounds=(0.0, 1e5), tar
 _DURATION = dict(units="s", display_units="ms", scale=MS_PER_S, bounds=(0.0, 3.0), target=(0.0, 3.0))
 _PRESSURE = dict(units="kPa", display_units="mmHg", scale=MMHG_PER_KPA, bounds=(-200.0, 200.0), target=(0.0, 40.0))
 
+#: Frames of the volume trace per beat, uniformly spaced from the onset (a cine MRI's phases over the RR interval).
+N_FRAMES = 20
+#: Names of the volume-trace metrics: ``V_frame_00`` (at the onset) … ``V_frame_19``.
+FRAME_NAMES = tuple(f"V_frame_{j:02d}" for j in range(N_FRAMES))
+
 METRICS: dict[str, Metric] = {
     m.name: m
     for m in (
@@ -66,6 +71,8 @@ METRICS: dict[str, Metric] = {
         Metric("CO", "ml/s", "cardiac output SV / T", "CO", "l/min", _ML_S_TO_L_MIN, (0.0, 1e4), (0.0, 1000.0)),
         Metric("EDP", doc="end-diastolic LV pressure, P_lv at mitral closing", label="EDP", **_PRESSURE),
         Metric("P_at_mean", doc="time-averaged atrial pressure (the filling pressure)", label="P_at mean", **_PRESSURE),
+        *(Metric(name, doc=f"LV volume at t = {j}/{N_FRAMES} of the beat after its onset (cine frame {j})", label=f"V frame {j}", **_VOLUME)
+          for j, name in enumerate(FRAME_NAMES)),
     )
 }
 
@@ -74,7 +81,10 @@ METRIC_NAMES = tuple(METRICS)
 
 #: Observation vector of the environment (internal units).
 OBS_NAMES = ("EF", "IVCT", "ET", "IVRT", "filling_time", "EDV", "ESV", "P_ao_sys", "P_ao_dia", "P_ao_pulse", "P_ao_mean", "EDP",
-             "P_at_mean")
+             "P_at_mean", *FRAME_NAMES)
+
+#: The beat's summary metrics: all but the volume trace (what tables show).
+SUMMARY_NAMES = tuple(n for n in METRIC_NAMES if n not in FRAME_NAMES)
 
 
 def header(name: str) -> str:

@@ -417,7 +417,7 @@ def run(p: ElementParams, state0: State, newton_tol, *, kind: str, steps: int, b
         return (v, p_lv, p_ao, p_c, p_at, res)
 
     def one_beat(carry, _):
-        acc0 = events.start(jnp.zeros_like(h), *_sample(p, carry["state"]))
+        acc0 = events.start(jnp.zeros_like(h), *_sample(p, carry["state"]), period)
 
         def step(c, xs):
             n, ca0, ca1, dca0 = xs

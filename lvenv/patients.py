@@ -23,13 +23,15 @@ import pathlib
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from lvenv import presets
 from lvenv.circulation import beat_period
 from lvenv.geometry import Geometry
-from lvenv.metrics import METRICS, OBS_NAMES
+from lvenv.metrics import FRAME_NAMES, METRICS, N_FRAMES, OBS_NAMES
 from lvenv.params import CellParams, Circulation, Heart, LOParams, validate
 from lvenv.units import mmhg_to_kpa
-from lvenv.validation import InputError, real
+from lvenv.validation import InputError, real, real_array
 
 __all__ = ["OBS_NAMES", "Patient", "builtin", "BUILTIN", "resolve"]
 
@@ -103,6 +105,21 @@ class Patient:
         phases = {k: t[k] for k in _PHASES if k in t}
         if sum(phases.values()) > period:
             raise InputError(f"patient.targets {phases} (s) add up to more than one beat, {period:g} s at {float(self.heart.circulation.HR):g} bpm")
+
+    def with_volume_trace(self, t, volumes, weight: float = 1.0) -> "Patient":
+        """This patient with a volume trace among its targets: samples (``t`` s from the beat's
+        onset, e.g. a cine MRI's phases after the R wave; ``volumes`` ml), at least 4, strictly
+        increasing in [0, T), interpolated periodically onto the frames t_j = j T / 20 of
+        :data:`lvenv.metrics.FRAME_NAMES`, each with weight ``weight``."""
+        t, volumes = real_array("t", t), real_array("volumes", volumes)
+        period = float(beat_period(self.heart.circulation))
+        if t.ndim != 1 or t.shape != volumes.shape or len(t) < 4:
+            raise InputError(f"t and volumes must be 1-D of one length ≥ 4, got shapes {t.shape} and {volumes.shape}")
+        if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0) and t[0] >= 0.0 and t[-1] < period):
+            raise InputError(f"t = {t.tolist()} must increase strictly within [0, {period:g}) s (one beat at {float(self.heart.circulation.HR):g} bpm)")
+        frames = np.interp(np.arange(N_FRAMES) * period / N_FRAMES, t, volumes, period=period)
+        trace = {name: float(v) for name, v in zip(FRAME_NAMES, frames)}
+        return dataclasses.replace(self, targets={**self.targets, **trace}, weights={**self.weights, **dict.fromkeys(trace, float(weight))})
 
     def weight(self, key: str) -> float:
         return float(self.weights.get(key, 1.0)) if key in self.targets else 0.0

@@ -106,7 +106,7 @@ def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool):
     t = jnp.arange(steps + 1, dtype=y0.dtype)[:, None] * h
     ca, ca_rate = coupling.calcium(t, p.lo, p.cell), coupling.calcium_rate(t, p.lo, p.cell)
 
-    acc0 = events.start(jnp.zeros_like(h), *sample(y0))
+    acc0 = events.start(jnp.zeros_like(h), *sample(y0), period)
 
     def step(carry, xs):
         y, acc = carry
@@ -210,7 +210,7 @@ def beat_adaptive(p: ModelParams, y0: jax.Array, step_tol, max_steps: int, grid:
         }
 
     carry0 = {
-        "n": jnp.asarray(0), "t": zero, "y": y0, "h": _FIRST_STEP * period + zero, "acc": events.start(zero, *sample(y0)),
+        "n": jnp.asarray(0), "t": zero, "y": y0, "h": _FIRST_STEP * period + zero, "acc": events.start(zero, *sample(y0), period),
         "done": zero > 1.0, "trials": jnp.zeros(zero.shape, jnp.int32),
         "replay": old_count > 0, "times": jnp.zeros_like(old_times),
     }

@@ -53,6 +53,7 @@ import numpy as np
 
 import lvenv
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
+from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import Patient
 from lvenv.plausibility import AORTIC, Band, distance
 from lvenv.plausibility import resolve as resolve_bands
@@ -64,12 +65,13 @@ __all__ = ["NOISE", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profi
            "probability_lower", "chi2"]
 
 #: Standard deviation of each target's measurement error, internal units (ours, illustrative):
-#: EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included), volumes 5 ml.
+#: EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included), volumes 5 ml
+#: (each frame of a volume trace too).
 NOISE: dict[str, float] = {
     "EF": 0.05, "IVCT": 0.010, "ET": 0.010, "IVRT": 0.010, "filling_time": 0.010,
     "P_ao_sys": float(mmhg_to_kpa(5.0)), "P_ao_dia": float(mmhg_to_kpa(5.0)), "P_ao_mean": float(mmhg_to_kpa(5.0)),
     "P_ao_pulse": float(mmhg_to_kpa(5.0)), "P_lv_peak": float(mmhg_to_kpa(5.0)), "EDV": 5.0, "ESV": 5.0, "SV": 5.0,
-    "EDP": float(mmhg_to_kpa(5.0)), "P_at_mean": float(mmhg_to_kpa(5.0)),
+    "EDP": float(mmhg_to_kpa(5.0)), "P_at_mean": float(mmhg_to_kpa(5.0)), **dict.fromkeys(FRAME_NAMES, 5.0),
 }
 #: Standard deviation (kPa) of the posterior's plausibility factor: 5 mmHg outside a filling band
 #: costs as much as a pressure measured 1 σ off.
@@ -238,6 +240,13 @@ class Posterior:
 
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if k != "samples"}
+
+    def widths(self) -> dict[str, float]:
+        """Width of each 90 % interval as a fraction of the parameter's identification bound
+        (on its log scale for log axes), so widths compare across parameters and data sets."""
+        space = ParameterSpace.for_names(tuple(self.samples))
+        lo, hi = (space.to_unit(np.array([self.interval_90[n][i] for n in space.names])) for i in (0, 1))
+        return dict(zip(space.names, map(float, hi - lo)))
 
 
 def _split_rhat(chains: np.ndarray) -> float:

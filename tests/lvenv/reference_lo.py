@@ -153,6 +153,7 @@ def beat_metrics(sol, q, y_start):
         "P_lv_peak": plv.max(), "P_ao_sys": pao.max(), "P_ao_dia": pao.min(),
         "P_ao_pulse": pao.max() - pao.min(), "P_ao_mean": integrate.trapezoid(pao, tt) / T,
         "EDP": pressures(sol.sol(t_mvc), q)[0], "P_at_mean": integrate.trapezoid(pat, tt) / T,
+        **{f"V_frame_{j:02d}": sol.sol(j * T / 20)[6] for j in range(20)},
     }
 
 
