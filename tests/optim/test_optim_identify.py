@@ -73,3 +73,8 @@ def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the
     assert spread(flat, "tau2") > 2 * spread(sharp, "tau2"), "a likelihood 10^4 times sharper keeps the walkers together"
     assert probability_lower(flat, flat, "Sa") == pytest.approx(0.5, abs=0.1)
     assert probability_lower(flat, sharp, "Sa") + probability_lower(sharp, flat, "Sa") == pytest.approx(1.0)
+    for name, width in sharp.widths().items():  # fraction of the bound, on the log scale for log axes
+        bound, (lo, hi) = ACTION_BOUNDS[name], sharp.interval_90[name]
+        expected = np.log(hi / lo) / np.log(bound.hi / bound.lo) if bound.log else (hi - lo) / (bound.hi - bound.lo)
+        assert width == pytest.approx(expected, rel=1e-9) and 0.0 <= width <= 1.0, name
+    assert flat.widths()["tau2"] > sharp.widths()["tau2"]
