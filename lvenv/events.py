@@ -70,14 +70,16 @@ class Accumulator:
     v_frames: jax.Array  # (K, ...) V at the frame times passed so far (V at the onset before)
 
 
-def _frame_index(v):
-    """0, 1, …, K − 1 along a new leading axis, broadcasting against the members ``v``."""
-    return jnp.arange(N_FRAMES, dtype=v.dtype).reshape((N_FRAMES,) + (1,) * jnp.ndim(v))
+def _frame_index(v, frames: int):
+    """0, 1, …, frames − 1 along a new leading axis, broadcasting against the members ``v``."""
+    return jnp.arange(frames, dtype=v.dtype).reshape((frames,) + (1,) * jnp.ndim(v))
 
 
-def start(t, v, p_lv, p_at, p_c, p_ao, period) -> Accumulator:
+def start(t, v, p_lv, p_at, p_c, p_ao, period, volume_trace: bool = True) -> Accumulator:
     """Open the record at the beat's onset ``t`` of a beat of ``period`` s. A mitral valve
-    already closed there closes at t."""
+    already closed there closes at t. ``volume_trace`` (static): record the frames; without,
+    their metrics are NaN and a step costs no work per frame (the env's fast path)."""
+    frames = N_FRAMES if volume_trace else 0
     zero = jnp.zeros_like(v)
     closed = p_at - p_lv < 0.0
     return Accumulator(
@@ -85,7 +87,7 @@ def start(t, v, p_lv, p_at, p_c, p_ao, period) -> Accumulator:
         t_mvc=t + zero, v_mvc=jnp.where(closed, v, zero), p_mvc=jnp.where(closed, p_lv, zero), t_avo=zero, t_avc=zero, v_avc=zero, t_mvo=zero,
         found=jnp.where(closed, 1, 0).astype(jnp.int32),
         p_lv_max=p_lv, p_ao_max=p_ao, p_ao_min=p_ao, p_ao_integral=zero, p_at_integral=zero,
-        t0=t + zero, frame=period / N_FRAMES + zero, v_frames=jnp.broadcast_to(v, (N_FRAMES, *jnp.shape(v))),
+        t0=t + zero, frame=period / N_FRAMES + zero, v_frames=jnp.broadcast_to(v, (frames, *jnp.shape(v))),
     )
 
 
@@ -126,9 +128,10 @@ def update(acc: Accumulator, t, v, p_lv, p_at, p_c, p_ao) -> Accumulator:
     t_avc = jnp.where(take_avc, jnp.maximum(acc.t + f_avc * dt, t_avo), acc.t_avc)
     t_mvo = jnp.where(take_mvo, jnp.maximum(acc.t + f_mvo * dt, t_avc), acc.t_mvo)
 
-    t_frames = acc.t0 + acc.frame * _frame_index(v)
+    # K × members work per step, so multiplications only (one division per member)
+    t_frames = acc.t0 + acc.frame * _frame_index(v, acc.v_frames.shape[0])
     passed = (acc.t < t_frames) & (t_frames <= t)
-    f_frames = jnp.clip((t_frames - acc.t) / jnp.where(dt > 0.0, dt, 1.0), 0.0, 1.0)
+    f_frames = (t_frames - acc.t) * (1.0 / jnp.where(dt > 0.0, dt, 1.0))
     return Accumulator(
         t=t, g_mv=g_mv, g_ao=g_ao, v=v, p_at=p_at, p_ao=p_ao,
         t_mvc=t_mvc,
@@ -171,7 +174,7 @@ def finish(acc: Accumulator, period) -> tuple[dict[str, jax.Array], jax.Array]:
         "CO": sv / period,
         "EDP": acc.p_mvc,
         "P_at_mean": acc.p_at_integral / period,
-        **dict(zip(FRAME_NAMES, acc.v_frames)),
+        **dict(zip(FRAME_NAMES, acc.v_frames if acc.v_frames.shape[0] else [jnp.full_like(sv, jnp.nan)] * N_FRAMES)),
     }
     return metrics, valid
 

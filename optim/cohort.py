@@ -73,11 +73,12 @@ import numpy as np
 
 from lvenv import presets
 from lvenv.env.core import ENV_SCHEME
+from lvenv.env.vector import info_metrics
 from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
-from lvenv.metrics import METRICS, OBS_NAMES, Metric
-from lvenv.plausibility import FILLING
+from lvenv.metrics import FRAME_NAMES, METRICS, OBS_NAMES, Metric
 from lvenv.params import Heart, ranges
 from lvenv.patients import Patient
+from lvenv.plausibility import FILLING
 from lvenv.simulation import SCHEMES
 from lvenv.status import EF_MIN, is_usable
 from lvenv.units import kpa_to_mmhg, mmhg_to_kpa
@@ -388,7 +389,7 @@ class _Fit:
             "line": self.report.line,
             "extra": self.report.extra,
             "parameters": dict(zip(DEFAULT_ACTION_PARAMS, map(float, x))),
-            "observation": dict(zip(OBS_NAMES, map(float, obs))),
+            "observation": {k: float(v) for k, v in zip(OBS_NAMES, obs) if k not in FRAME_NAMES or math.isfinite(v)},  # frames if recorded
             "targets": dict(patient.targets),
             "mismatch": float(mismatch),
             "evaluations": self.opt.evaluations,
@@ -447,7 +448,7 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
             if members:
                 env.replace_patients(members, incoming)
             _, reward, _, _, info = venv.step(env.config.actions.to_action(actions))
-            obs = np.stack([info[k] for k in OBS_NAMES], axis=1)
+            obs = info_metrics(info)
             for s, fit in enumerate(fits):
                 sl = slice(s * lam, (s + 1) * lam)
                 if fit is not None and fit.absorb(-reward[sl], info["mismatch"][sl], obs[sl], info["status"][sl]):

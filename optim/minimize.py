@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lvenv.env.vector import info_metrics
 from lvenv.identification import ParameterSpace
 from lvenv.metrics import OBS_NAMES
 from lvenv.patients import Patient
@@ -175,7 +176,7 @@ class EnvObjective:
         mismatch = np.asarray(info["mismatch"], np.float64)
         feasible = is_usable(status) & np.isfinite(mismatch) & np.isfinite(reward)
         mismatch = np.where(feasible, mismatch, np.inf)
-        obs = np.stack([np.asarray(info[k], np.float64) for k in OBS_NAMES], axis=1)
+        obs = info_metrics(info)
         self.records.append(
             {"x": x, "f": -np.asarray(reward, np.float64), "feasible": feasible,
              "mismatch": mismatch, "obs": obs, "status": status}

@@ -92,6 +92,7 @@ class Config:
     max_episode_steps: int | None = None
     obs_noise: tuple[float, ...] | None = None  # relative std of the measurement noise per observation
     plausibility: tuple[Band, ...] = resolve(True)  # the bands of the reward (lvenv.plausibility.resolve)
+    volume_trace: bool = False  # record the volume-trace frames (else their metrics are NaN, their observations 0)
     autoreset: bool = True  # NEXT_STEP autoreset; False: DISABLED (ended members keep being evaluated)
 
 
@@ -114,13 +115,14 @@ def _observe(out) -> jax.Array:
 
 
 def _observation(metrics: jax.Array, usable: jax.Array) -> jax.Array:
-    """What the agent sees: the metrics, or zeros for a failed member (kept inside the space)."""
-    return jnp.where(usable[:, None], metrics, 0.0)
+    """What the agent sees: the metrics, or zeros for a failed member and for metrics not
+    computed (the volume-trace frames without ``Config.volume_trace``), kept inside the space."""
+    return jnp.where(usable[:, None] & jnp.isfinite(metrics), metrics, 0.0)
 
 
 def _score(obs: jax.Array, params: EnvParams, config: Config):
     targets, weights = params.targets.T, params.weights.T
-    rel = (obs - targets) / targets
+    rel = jnp.where(weights > 0.0, (obs - targets) / targets, 0.0)  # an untargeted metric may be NaN (frames not recorded)
     wsum = jnp.sum(weights, axis=1)
     mse = jnp.sum(weights * rel**2, axis=1) / wsum
     mismatch = jnp.sum(weights * jnp.abs(rel), axis=1) / wsum
@@ -136,7 +138,8 @@ def _noisy(obs: jax.Array, key: jax.Array, config: Config) -> jax.Array:
 
 def _evaluate(heart: ModelParams, y0: jax.Array, config: Config):
     return run_beats_parallel(heart, y0, config.rtol, steps=config.steps_per_beat, max_beats=config.max_beats, steady=True, record=False,
-                              scheme=config.scheme, step_tol=config.step_tol, acceleration=config.acceleration)
+                              scheme=config.scheme, step_tol=config.step_tol, acceleration=config.acceleration,
+                              volume_trace=config.volume_trace)
 
 
 def reset(key: jax.Array, params: EnvParams, config: Config):

@@ -68,6 +68,7 @@ class LVHeart:
     max_episode_steps: int | None = None
     obs_noise: float = 0.0
     plausibility: bool | tuple[Band, ...] = True  # the reward's bands (lvenv.plausibility.resolve)
+    volume_trace: bool = False  # record the volume-trace frames (lvenv.env.core.Config)
 
     def __post_init__(self) -> None:
         settings = check_settings(steps_per_beat=self.steps_per_beat, max_beats=self.max_beats, rtol=self.rtol, scheme=self.scheme, step_tol=self.step_tol,
@@ -79,7 +80,7 @@ class LVHeart:
         object.__setattr__(self, "_config", core.Config(
             actions=actions, **settings, tolerance=real("tolerance", self.tolerance, 0.0), max_episode_steps=max_steps,
             obs_noise=None if real("obs_noise", self.obs_noise, 0.0) == 0.0 else (float(self.obs_noise),) * len(observation_space().names),
-            autoreset=False, plausibility=resolve_bands(self.plausibility),
+            autoreset=False, plausibility=resolve_bands(self.plausibility), volume_trace=bool(self.volume_trace),
         ))
 
     @property

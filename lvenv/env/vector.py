@@ -24,7 +24,7 @@ from lvenv.devices import shard_members
 from lvenv.env import core
 from lvenv.env.spaces import ActionMap, observation_space
 from lvenv.identification import DEFAULT_ACTION_PARAMS
-from lvenv.metrics import OBS_NAMES
+from lvenv.metrics import FRAME_NAMES, OBS_NAMES
 from lvenv.model import N_STATES
 from lvenv.patients import Patient, resolve
 from lvenv.plausibility import Band
@@ -32,7 +32,7 @@ from lvenv.plausibility import resolve as resolve_bands
 from lvenv.simulation import DEFAULT_STEP_TOL, check_settings
 from lvenv.validation import InputError, choice, integer, real, real_array
 
-__all__ = ["LVHeartVectorEnv", "TRACES", "STATE_FIELDS"]
+__all__ = ["LVHeartVectorEnv", "TRACES", "STATE_FIELDS", "info_metrics"]
 
 #: Fields of :meth:`LVHeartVectorEnv.get_state` (host NumPy arrays, member axis first).
 STATE_FIELDS = ("y", "steps", "needs_reset", "key", "parameters")
@@ -66,6 +66,18 @@ _reset_jit = jax.jit(_counted(_with_key(core.reset)), static_argnames="config")
 _step_jit = jax.jit(_counted(_with_key(core.step)), static_argnames="config")
 
 
+def info_metrics(info: dict[str, Any]) -> np.ndarray:
+    """The observations' metrics of a step's ``info`` as one (members, n_obs) float array in
+    :data:`~lvenv.metrics.OBS_NAMES` order, NaN where absent (frames the env does not record)."""
+    n = len(info["status"])
+    return np.stack([np.asarray(info.get(k, np.full(n, np.nan)), np.float64) for k in OBS_NAMES], axis=1)
+
+
+def _traced(patient: Patient) -> bool:
+    """Whether the patient targets a volume-trace frame."""
+    return any(k in FRAME_NAMES for k in patient.targets)
+
+
 def _scatter(old: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
     """``old`` (batch-last) with the members ``idx`` replaced by ``part``'s columns."""
     out = np.array(old, copy=True)
@@ -94,6 +106,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         plausibility: the reward's physiological bands (:mod:`lvenv.plausibility`): ``True``
             (default: mean aortic pressure, and mean atrial pressure and EDP 4–25 mmHg),
             ``False`` (the aortic band only) or a sequence of ``Band``.
+        volume_trace: record the volume-trace frames (``V_frame_00`` …; about 8 % of a step's
+            time). ``None`` (default): when some patient targets them. Without, their
+            observations are 0 and ``info`` does not hold them.
 
     Every argument is checked here; a bad one raises ``ValueError`` naming it, its value and
     what is allowed. ``step`` takes actions of shape exactly ``(num_envs, len(action_params))``.
@@ -119,6 +134,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         render_mode: str | None = None,
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
         plausibility: bool | Sequence[Band] = True,
+        volume_trace: bool | None = None,
     ):
         num_envs = integer("num_envs", num_envs, 1)
         choice("render_mode", render_mode, (None, "rgb_array"))
@@ -139,12 +155,16 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.patients = resolve(patient, num_envs)
+        if volume_trace is None:
+            volume_trace = any(_traced(p) for p in self.patients)
+        elif not isinstance(volume_trace, (bool, np.bool_)):
+            raise InputError(f"volume_trace = {volume_trace!r} must be True, False or None (when some patient targets the frames)")
         self.config = core.Config(
             actions=ActionMap(action_params, action_mode), **settings, tolerance=real("tolerance", tolerance, 0.0),
             max_episode_steps=max_episode_steps,
             obs_noise=tuple(map(float, noise)) if np.any(noise > 0) else None,
             autoreset=autoreset_mode == AutoresetMode.NEXT_STEP,
-            plausibility=resolve_bands(plausibility),
+            plausibility=resolve_bands(plausibility), volume_trace=bool(volume_trace),
         )
         self.single_action_space = self.config.actions.box()
         self.action_space = batch_space(self.single_action_space, num_envs)
@@ -165,7 +185,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
 
     def _info(self, raw: dict[str, Any]) -> dict[str, Any]:
         metrics = np.asarray(raw["metrics"])[: self.num_envs]
-        info: dict[str, Any] = {name: metrics[:, i] for i, name in enumerate(OBS_NAMES)}
+        info: dict[str, Any] = {name: metrics[:, i] for i, name in enumerate(OBS_NAMES) if self.config.volume_trace or name not in FRAME_NAMES}
         info["status"] = status.names(np.asarray(raw["status"])[: self.num_envs])
         for key in ("converged", "beats", "steps", "mismatch", "clipped", "reset"):
             if key in raw:
@@ -273,6 +293,8 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         if given != len(idx) or isinstance(patients, (str, dict, Patient)):
             raise InputError(f"replace_patients needs one patient per member: got {given} for the {len(idx)} members {idx.tolist()}")
         new = resolve(list(patients), len(idx))
+        if not self.config.volume_trace and any(map(_traced, new)):
+            raise InputError("a new patient targets the volume trace, which this env does not record; create it with volume_trace=True")
         for i, patient in zip(idx, new):
             self.patients[i] = patient
         rows = core.env_params(new)

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 import lvenv
 from lvenv import presets
-from lvenv.metrics import METRIC_NAMES, OBS_NAMES
+from lvenv.metrics import FRAME_NAMES, METRIC_NAMES, OBS_NAMES
 from lvenv.patients import Patient
 from lvenv.simulation import check_settings
 from lvenv.status import EF_MIN, is_usable
@@ -116,6 +116,9 @@ def test_actions(venv, action):
     assert venv.observation_space.contains(obs) and np.all(np.isfinite(reward))
     usable = is_usable(info["status"])
     for name in OBS_NAMES:
+        if name in FRAME_NAMES and not venv.unwrapped.config.volume_trace:
+            assert name not in info
+            continue
         assert np.all(np.isfinite(info[name][usable])) and np.all(np.isnan(info[name][~usable]))
     bad = ~np.all(np.isfinite(np.asarray(action, float)), axis=1) & ~info["reset"]  # a reset step ignores the action
     assert np.all(info["status"][bad] == "invalid_action") and np.all(terminated[bad])

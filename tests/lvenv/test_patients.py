@@ -38,3 +38,28 @@ def test_a_bad_volume_trace_is_refused_naming_what_is_wrong(t, v, message):
 def test_a_trace_with_an_impossible_volume_is_refused_by_the_target_check():
     with pytest.raises(InputError, match="V_frame_00"):
         builtin("normal").with_volume_trace([0.0, 0.2, 0.4, 0.6], [-5.0, 50.0, 40.0, 50.0])
+
+
+def test_the_env_records_the_frames_only_for_patients_that_target_them():
+    import gymnasium
+
+    patient = builtin("normal")
+    sim = lvenv.simulate(patient.heart, scheme="adaptive", acceleration="anderson", traces=False)
+    frames = np.array([sim.metrics[k] for k in FRAME_NAMES])
+    traced = patient.with_volume_trace(np.arange(20) * 0.05, frames)
+    kwargs = dict(num_envs=2, autoreset_mode="Disabled", max_episode_steps=None)
+    with_trace = gymnasium.make_vec("lvenv/LVHeart-v0", patient=[traced, patient], **kwargs)
+    without = gymnasium.make_vec("lvenv/LVHeart-v0", patient=patient, **kwargs)
+    assert with_trace.unwrapped.config.volume_trace and not without.unwrapped.config.volume_trace
+    obs_t, info_t = with_trace.reset(seed=0)
+    obs_n, info_n = without.reset(seed=0)
+    columns = [with_trace.unwrapped.obs_names.index(k) for k in FRAME_NAMES]
+    np.testing.assert_allclose([info_t[k][0] for k in FRAME_NAMES], frames, atol=0.005 * float(sim.metrics["EDV"]))
+    assert np.all(obs_n[:, columns] == 0.0) and not set(FRAME_NAMES) & set(info_n), "not recorded: 0 seen, not in info"
+    assert without.observation_space.contains(obs_n)
+    for k in ("EF", "ET", "P_at_mean"):  # the rest is the same computation
+        assert info_t[k][1] == info_n[k][0]
+    with pytest.raises(InputError, match="volume_trace=True"):
+        without.unwrapped.replace_patients([0], [traced])
+    with_trace.close()
+    without.close()
