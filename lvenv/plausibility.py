@@ -30,7 +30,7 @@ only rule out what is impossible. Pass your own :class:`Band` tuple to narrow th
 Not built: a stroke-volume band for the body size. Patient records carry no body size, and the
 LV geometry (fixed per patient) already sets the heart's scale.
 
-``plausibility`` settings (env, :func:`optim.fit.make_env`, ``lvenv fit``, cohorts, LM):
+``plausibility`` settings (env, :func:`optim.fit.make_env`, ``lvenv fit``, cohorts, LM, posterior):
 ``True`` (default) applies :data:`FILLING`; ``False`` only the aortic band; a sequence of
 :class:`Band` replaces :data:`FILLING`.
 """
