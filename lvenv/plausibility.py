@@ -71,6 +71,10 @@ class Band:
         """A pressure band given in mmHg."""
         return cls(metric, float(mmhg_to_kpa(low)), float(mmhg_to_kpa(high)), float(mmhg_to_kpa(scale)))
 
+    def holds(self, value):
+        """lo ≤ ``value`` ≤ hi, elementwise (False where NaN)."""
+        return (self.low <= value) & (value <= self.high)
+
     def describe(self) -> str:
         """``"P_at_mean 4–25 mmHg"`` (display units)."""
         m = METRICS[self.metric]
@@ -105,7 +109,7 @@ def penalty(metrics: Mapping[str, object], bands: Sequence[Band]):
 
 def inside_bands(metrics: Mapping[str, object], plausibility: bool | Sequence[Band] = True):
     """Whether every band in force holds (elementwise; False where a metric is NaN)."""
-    return functools.reduce(operator.and_, [(b.low <= metrics[b.metric]) & (metrics[b.metric] <= b.high) for b in resolve(plausibility)])
+    return functools.reduce(operator.and_, [b.holds(metrics[b.metric]) for b in resolve(plausibility)])
 
 
 def report(observation: Mapping[str, float], plausibility: bool | Sequence[Band] = True) -> dict[str, dict[str, float | bool | str]]:
@@ -115,5 +119,5 @@ def report(observation: Mapping[str, float], plausibility: bool | Sequence[Band]
         m = METRICS[b.metric]
         value = float(observation.get(b.metric, float("nan")))
         out[b.metric] = {"value": float(m.to_display(value)), "low": float(m.to_display(b.low)), "high": float(m.to_display(b.high)),
-                         "units": m.display_units, "inside": bool(b.low <= value <= b.high)}
+                         "units": m.display_units, "inside": bool(b.holds(value))}
     return out

@@ -522,6 +522,8 @@ def simulate(
     steps_per_beat, max_beats, rtol, beats = (settings[k] for k in ("steps_per_beat", "max_beats", "rtol", "beats"))
     if not isinstance(traces, (bool, np.bool_)):
         raise InputError(f"traces = {traces!r} must be True or False")
+    if not isinstance(volume_trace, (bool, np.bool_)):
+        raise InputError(f"volume_trace = {volume_trace!r} must be True or False")
     if traces and scheme == "adaptive":
         raise InputError("traces = True needs scheme = 'fixed' (the adaptive scheme's steps differ per member); pass traces=False")
     dtype = choice("dtype", jnp.dtype(dtype) if _is_dtype(dtype) else dtype, (jnp.dtype(jnp.float64), jnp.dtype(jnp.float32)))
