@@ -271,14 +271,16 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--plausibility/--no-plausibility", default=True, show_default=True,
               help="keep mean atrial pressure and EDP within 4–25 mmHg in the objective (lvenv.plausibility)")
 @click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
+@click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
+              help="write the identifiability report at the fit to this folder: profiles, posterior, markdown and PNG (minutes)")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
 @click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
 @click.option("--convergence", "convergence_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
               help="write the best mismatch against evaluations (.png or .pdf)")
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
-def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, plausibility, identifiability, fidelity, fidelity_mesh, plot_path,
-                convergence_path, as_json) -> int:
+def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, plausibility, identifiability, report_dir, fidelity, fidelity_mesh,
+                plot_path, convergence_path, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets."""
     from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
     from optim.minimize import minimize
@@ -312,6 +314,14 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 
         sens = sensitivity(record, res.parameters, steps_per_beat=steps_per_beat)
         payload["identifiability"] = {"singular_values": sens.singular_values, "null_directions": sens.null_directions}
+    if report_dir is not None and ok:
+        from optim.cohort import CohortOptions
+        from optim.identify import write_report
+
+        options = CohortOptions(budget=480, stop_mismatch=0.0, plausibility=plausibility, seed=seed)
+        with _working("profiles and posterior for the identifiability report"):
+            payload["report"] = str(write_report(record, res.parameters, report_dir, options=options,
+                                                 posterior_options={"plausibility": plausibility, "seed": seed}))
     if fidelity and ok:
         try:
             from optim.congruency import check_fidelity
@@ -343,6 +353,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         out.print("singular values of the noise-scaled sensitivity (optim.identify; χ per unit-cube step): " + ", ".join(f"{v:.3g}" for v in ident["singular_values"]))
         for j, direction in enumerate(ident["null_directions"]):
             out.print(f"null direction {j + 1} (targets unchanged to first order): " + ", ".join(f"{n} {v:+.2f}" for n, v in direction.items()))
+    if "report" in payload:
+        out.print(f"identifiability report: {payload['report']}")
     if "fidelity" in payload:
         fid = payload["fidelity"]
         out.print(f"fidelity against the 3-D oracle (h = {fidelity_mesh:g} mm): C {100 * fid['C']:.2f} %, {'within' if fid['ok'] else 'OUTSIDE'} tolerance")

@@ -1,5 +1,5 @@
 """Figures of a beat (matplotlib, Agg backend): PV loop and traces, a fit against its targets
-(the paper's Fig. 10), and LO against FE traces. Each writes PNG or PDF by the file's suffix.
+(the paper's Fig. 10), LO against FE traces, and profile likelihoods and posterior pairs. Each writes PNG or PDF by the file's suffix.
 
 Axes are in display units (mmHg, ms, ml) through :mod:`lvenv.units`; the functions take internal
 units (s, ml, kPa) like the rest of :mod:`lvenv`.
@@ -17,7 +17,8 @@ from lvenv.simulation import Traces
 from lvenv.units import MS_PER_S, kpa_to_mmhg
 from lvenv.validation import InputError
 
-__all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure", "histogram_figure", "generalisation_figure"]
+__all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure", "histogram_figure", "generalisation_figure",
+           "pairs_figure", "profile_figure"]
 
 SUFFIXES = (".png", ".pdf")
 
@@ -40,6 +41,15 @@ def _save(fig, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     return path
+
+
+def _log_axis(axis) -> None:
+    """A log axis with ticks at 1, 2 and 5 × 10^k, labelled plainly (no minor labels)."""
+    from matplotlib import ticker
+
+    axis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+    axis.set_minor_formatter(ticker.NullFormatter())
 
 
 def _traces(ax, tr: Traces, style: str = "-", label: str = "") -> None:
@@ -158,4 +168,72 @@ def generalisation_figure(rows: list[Mapping], path: str | os.PathLike[str], col
             ax.set_title(f"{r['heart']} {r['scenario']}\nC {100 * r['C']:.1f} %" if k == 0 else "", fontsize=8)
             ax.set_ylabel(f"{key} ({unit})" if j == 0 else "", fontsize=8)
             ax.tick_params(labelsize=7)
+    return _save(fig, path)
+
+
+def pairs_figure(samples: Mapping[str, Mapping[str, np.ndarray]], path: str | os.PathLike[str], log: Mapping[str, bool] | None = None,
+                 max_points: int = 2000) -> Path:
+    """Posterior pairs plot: for each label (e.g. a patient) of ``samples[label][name]``, the
+    marginal histograms on the diagonal and ``max_points`` draws of each pair below it, one
+    colour per label. ``log[name]``: a log axis for that parameter (as its identification bound)."""
+    labels = list(samples)
+    names = list(samples[labels[0]])
+    log = dict(log or {})
+    k = len(names)
+    path, fig, axes = _figure(path, k, width=1.9 * k, nrows=k, height=1.9 * k)
+    rng = np.random.default_rng(0)
+    for c, label in enumerate(labels):
+        draws = {n: np.asarray(samples[label][n], float) for n in names}
+        pick = rng.choice(len(draws[names[0]]), size=min(max_points, len(draws[names[0]])), replace=False)
+        for i, ni in enumerate(names):
+            for j, nj in enumerate(names):
+                ax = axes[i, j]
+                if j > i:
+                    ax.set_visible(False)
+                elif i == j:
+                    bins = np.geomspace(*np.percentile(draws[ni], [0, 100]), 40) if log.get(ni) else 40
+                    ax.hist(draws[ni], bins=bins, color=f"C{c}", alpha=0.5, density=True, label=label)
+                else:
+                    ax.plot(draws[nj][pick], draws[ni][pick], ".", color=f"C{c}", ms=1.5, alpha=0.3)
+    for i, ni in enumerate(names):
+        for j, nj in enumerate(names[: i + 1]):
+            ax = axes[i, j]
+            if log.get(nj):
+                ax.set_xscale("log")
+                _log_axis(ax.xaxis)
+            if log.get(ni) and i != j:
+                ax.set_yscale("log")
+                _log_axis(ax.yaxis)
+            ax.tick_params(labelsize=6)
+            ax.set_xlabel(nj if i == k - 1 else "", fontsize=8)
+            ax.set_ylabel(ni if j == 0 and i > 0 else "", fontsize=8)
+    axes[0, 0].legend(fontsize=7)
+    return _save(fig, path)
+
+
+def profile_figure(grid: Mapping[str, np.ndarray], chi2: Mapping[str, np.ndarray], chi2_min: float, path: str | os.PathLike[str],
+                   threshold: float, log: Mapping[str, bool] | None = None, best: Mapping[str, float] | None = None) -> Path:
+    """Profile likelihoods: per parameter, χ² of its constrained fits minus the overall minimum
+    against the parameter (NaN points left out), the threshold Δχ² (dashed) and the best fit's
+    value (dotted, ``best``). ``log[name]``: a log axis for that parameter."""
+    names = list(grid)
+    log, best = dict(log or {}), dict(best or {})
+    cols = min(3, len(names))
+    rows = -(-len(names) // cols)
+    path, fig, axes = _figure(path, cols, width=3.6 * cols, nrows=rows, height=2.9 * rows)
+    axes = np.atleast_2d(axes)
+    for i, name in enumerate(names):
+        ax = axes[i // cols, i % cols]
+        x, y = np.asarray(grid[name], float), np.asarray(chi2[name], float) - chi2_min
+        ax.plot(x[np.isfinite(y)], y[np.isfinite(y)], "o-", color="C0", ms=4)
+        ax.axhline(threshold, ls="--", color="C3", lw=1)
+        if name in best:
+            ax.axvline(best[name], ls=":", color="k", lw=1)
+        if log.get(name):
+            ax.set_xscale("log")
+            _log_axis(ax.xaxis)
+        ax.set(xlabel=name, ylabel="Δχ²" if i % cols == 0 else "")
+        ax.tick_params(labelsize=7)
+    for j in range(len(names), rows * cols):
+        axes[j // cols, j % cols].set_visible(False)
     return _save(fig, path)

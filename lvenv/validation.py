@@ -27,14 +27,19 @@ class InputError(ValueError):
     """
 
 
+def _number(x: float) -> str:
+    """A bound as written in messages: integers in full, other numbers in %g."""
+    return str(x) if isinstance(x, numbers.Integral) else f"{x:g}"
+
+
 def _interval(lo: float, hi: float, lo_open: bool, hi_open: bool) -> str:
     if math.isinf(hi) and not math.isinf(lo):
-        return f"{'>' if lo_open else '≥'} {lo:g}"
+        return f"{'>' if lo_open else '≥'} {_number(lo)}"
     if math.isinf(lo) and not math.isinf(hi):
-        return f"{'<' if hi_open else '≤'} {hi:g}"
+        return f"{'<' if hi_open else '≤'} {_number(hi)}"
     if math.isinf(lo) and math.isinf(hi):
         return "any finite value"
-    return f"in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    return f"in {'(' if lo_open else '['}{_number(lo)}, {_number(hi)}{')' if hi_open else ']'}"
 
 
 def real(name: str, value: Any, lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False, hi_open: bool = False) -> float:

@@ -1,8 +1,18 @@
 """What a patient's measurements pin down: the sensitivity at a fit and profile likelihoods.
 
-Measurement model (ours, illustrative; replace it with your laboratory's values): each target
-k is measured with an independent Gaussian error of standard deviation σ_k (:data:`NOISE`,
-internal units), so a parameter set's misfit is χ²(θ) = Σ_k ((o_k(θ) − t_k) / σ_k)².
+Measurement model (replace it with your laboratory's values): each target k is measured with an
+independent Gaussian error of standard deviation σ_k (:data:`NOISE`, internal units), so a
+parameter set's misfit is χ²(θ) = Σ_k ((o_k(θ) − t_k) / σ_k)². Where the defaults come from:
+
+* EF 0.05: two expert readers of the same 2-D echo studies (Simpson's biplane, 140 patients)
+  differed by 0.96 ± 7.0 EF points (Akil S et al., Clin Physiol Funct Imaging 2024,
+  doi:10.1111/cpf.12918), so one reading's error is 7.0/√2 ≈ 5 points.
+* Cuff pressures 5 mmHg: a validated cuff device may differ from the reference by a mean of at
+  most 5 mmHg with a standard deviation of at most 8 mmHg (AAMI/ESH/ISO 81060-2; Stergiou G et
+  al., J Hypertens 36:472, 2018). 5 mmHg is a device well inside that limit; give 8 mmHg for
+  the worst device the standard admits.
+* Time intervals 10 ms, volumes 5 ml and filling-pressure estimates 5 mmHg: ours, illustrative
+  (no published inter-observer error was at hand for them).
 
 :func:`sensitivity`: S = diag(1/σ) dM/dθ · dθ/du at a parameter set, by :func:`lvenv.jacobian`,
 per unit-cube coordinate u of :class:`lvenv.identification.ParameterSpace` (log axes where
@@ -17,7 +27,7 @@ objective is χ² up to a constant factor), and the profile is χ² of each fit'
 state. With Δ = 3.84 (the 95 % point of χ² with one degree of freedom), each parameter is
 
 * ``identified``: the profile rises more than Δ above its minimum on both sides within the
-  bounds (the 95 % interval is finite);
+  bounds, beyond every point that stays below (the 95 % interval is finite);
 * ``practically non-identifiable``: it rises above Δ on at most one side, but is not flat;
 * ``structurally non-identifiable``: it stays flat (max − min < :data:`FLAT` = 1) over the whole
   bound, and the parameter has a component above 0.1 in a null direction of the sensitivity;
@@ -37,26 +47,49 @@ mmHg; 5 mmHg is the pressure σ of :data:`NOISE`, :data:`PLAUSIBILITY_SD`). With
 band the posterior spread along the τ2–Sa ridge into hearts no other method would accept, and
 the 90 % intervals of synthetic truths drawn inside it missed the truth too often
 (``scripts/calibration.py``).
-Sampler: the ensemble sampler of ``emcee`` (Foreman-Mackey D et al., PASP 125:306,
-2013) with differential-evolution moves by default, vectorised: each half-ensemble of proposals is one step of a
-vector env (:func:`optim.fit.make_env`), so the walkers run through the batched heart. This is
-the issue's fallback sampler; a gradient-based NUTS is not built (see README). Diagnostics:
-acceptance fraction, emcee's integrated autocorrelation time τ per parameter and the effective
-sample size (walkers × kept steps / τ), and the split R-hat of Gelman et al. (BDA3, §11.4)
-computed with the walkers as chains (walkers of an ensemble are not independent, so R-hat is
-optimistic; trust τ first). :func:`probability_lower` compares two patients' posteriors.
+Sampler, in two stages:
+
+1. *Pilot*: the ensemble sampler of ``emcee`` (Foreman-Mackey D et al., PASP 125:306, 2013) with
+   differential-evolution moves by default, vectorised: each half-ensemble of proposals is one
+   step of a vector env (:func:`optim.fit.make_env`), so the walkers run through the batched
+   heart. It finds the posterior's region and shape, ridge included, but its walkers are not
+   independent chains and move slowly along the ridge (split R-hat 1.05–1.27 after 800–2000 steps).
+2. *Chains*: ``chains`` independent Metropolis–Hastings chains started at pilot draws, in
+   ``rounds`` rounds. Each step is, with probability 0.8, an independence proposal from a
+   Gaussian mixture fitted to the draws of the stage before (the pilot's for round 1, the
+   previous round's after) in logit coordinates of the unit cube (components chosen by BIC, plus a
+   defensive copy with doubled standard deviations and weight 0.1, so the proposal's tails are
+   heavier than the fit's), else a Gaussian random-walk step (0.1 × the covariance of the draws
+   before). The proposal is fixed within a round, so each round's chains are valid MCMC chains
+   of the posterior whatever the draws before found (Tierney L, Ann Stat 22:1701, 1994); a
+   better fit only makes them mix faster. Only the last round is reported. The chains do not
+   interact, so their split R-hat is the real diagnostic. On a curved 6-D ridge (the test's)
+   with a DE pilot, one round mixed with τ ≈ 5–9 steps and R-hat up to 1.11, the second,
+   refitted, with τ ≈ 2–3 and R-hat ≤ 1.03 after 300 kept steps. From a wrong pilot (a narrow
+   Gaussian off the ridge) two rounds had not mixed, and R-hat (1.28) said so; four had.
+
+This is the issue's fallback sampler; a gradient-based NUTS is not built (see README).
+Diagnostics (of the chains; of the pilot's walkers when ``chains=0``): acceptance fraction,
+emcee's integrated autocorrelation time τ per parameter and the effective sample size (chains ×
+kept steps / τ), and the split R-hat of Gelman et al. (BDA3, §11.4), largest over parameters
+below 1.01 in the README's runs of the built-in patients. :func:`probability_lower` compares two patients' posteriors.
+
+:func:`write_report`: all of the above at a fit, as a per-patient markdown report with the profile
+curves and the posterior pairs plot as PNG (``lvenv fit PATIENT --report DIR``).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import pathlib
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 import lvenv
-from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
+from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import Patient
 from lvenv.plausibility import Band, distance
@@ -66,11 +99,11 @@ from lvenv.validation import InputError, integer
 from optim.cohort import CohortOptions, Report, fit_reports
 
 __all__ = ["NOISE", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
-           "probability_lower", "chi2"]
+           "probability_lower", "chi2", "write_report"]
 
-#: Standard deviation of each target's measurement error, internal units (ours, illustrative):
-#: EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included), volumes 5 ml
-#: (each frame of a volume trace too).
+#: Standard deviation of each target's measurement error, internal units (sources in the module
+#: docstring): EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included),
+#: volumes 5 ml (each frame of a volume trace too).
 NOISE: dict[str, float] = {
     "EF": 0.05, "IVCT": 0.010, "ET": 0.010, "IVRT": 0.010, "filling_time": 0.010,
     "P_ao_sys": float(mmhg_to_kpa(5.0)), "P_ao_dia": float(mmhg_to_kpa(5.0)), "P_ao_mean": float(mmhg_to_kpa(5.0)),
@@ -155,11 +188,21 @@ class Profiles:
 
 
 def _interval(grid: np.ndarray, values: np.ndarray, level: float) -> tuple[float | None, float | None]:
-    """Grid values where the profile first exceeds ``level`` on each side of its minimum."""
-    i = int(np.nanargmin(values))
-    above = np.where(np.isfinite(values), values > level, False)
-    left = [j for j in range(i - 1, -1, -1) if above[j]]
-    right = [j for j in range(i + 1, len(grid)) if above[j]]
+    """Outer ends of the profile interval: on each side, the grid value next beyond the outermost
+    point at or below ``level`` where the profile is above it (None where no point beyond is).
+    Where no point is at or below ``level``, the profile's own minimum stands for them.
+
+    Each profile point is a constrained fit's χ², an upper bound of the true profile there, so a
+    point at or below ``level`` is certain and one above may be a fit that stalled: the interval
+    spans every point below the level, and a stalled fit inside it cannot split or shorten it.
+    """
+    finite = np.isfinite(values)
+    below = np.flatnonzero(finite & (values <= level))
+    if not below.size:  # every constrained fit of this parameter ended above the overall best + Δ
+        below = np.array([int(np.nanargmin(values))])
+    above = finite & (values > level)
+    left = [j for j in range(below[0] - 1, -1, -1) if above[j]]
+    right = [j for j in range(below[-1] + 1, len(grid)) if above[j]]
     return (float(grid[left[0]]) if left else None, float(grid[right[0]]) if right else None)
 
 
@@ -263,13 +306,82 @@ def _split_rhat(chains: np.ndarray) -> float:
     return float(np.sqrt(((n - 1) / n * within + between / n) / within)) if within > 0 else float("nan")
 
 
+#: Chain moves: the independence proposal's share, the defensive component's weight and
+#: standard-deviation factor, and the random walk's covariance factor (module docstring).
+INDEPENDENCE_SHARE, DEFENSIVE_WEIGHT, DEFENSIVE_SCALE, WALK_SCALE = 0.8, 0.1, 2.0, 0.1
+_EDGE = 1e-9  # unit-cube draws are kept this far from the faces before the logit
+
+
+class _Mixture:
+    """Gaussian mixture on z = logit(u), with the density of u it induces on the unit cube:
+    log g(u) = log g_z(z) − Σ log(u (1 − u))."""
+
+    def __init__(self, weights: np.ndarray, means: np.ndarray, covariances: np.ndarray) -> None:
+        self.weights, self.means = np.asarray(weights, float), np.asarray(means, float)
+        self.chol = np.linalg.cholesky(np.asarray(covariances, float))
+        d = self.means.shape[1]
+        self._log_norm = np.log(self.weights) - np.sum(np.log(np.diagonal(self.chol, axis1=1, axis2=2)), axis=1) - 0.5 * d * np.log(2 * np.pi)
+
+    @classmethod
+    def fit(cls, u: np.ndarray, seed: int, max_components: int = 5) -> _Mixture:
+        """Fit to unit-cube draws ``u`` (n, d), components 1..``max_components`` chosen by BIC,
+        and add the defensive component (module docstring)."""
+        from sklearn.mixture import GaussianMixture
+
+        z = _logit(u)
+        fits = [GaussianMixture(k, covariance_type="full", reg_covar=1e-6, random_state=seed).fit(z)
+                for k in range(1, min(max_components, max(1, len(z) // (4 * z.shape[1]))) + 1)]
+        best = min(fits, key=lambda g: g.bic(z))
+        w = np.concatenate([(1 - DEFENSIVE_WEIGHT) * best.weights_, DEFENSIVE_WEIGHT * best.weights_])
+        return cls(w, np.concatenate([best.means_, best.means_]), np.concatenate([best.covariances_, DEFENSIVE_SCALE**2 * best.covariances_]))
+
+    def sample(self, n: int, random: np.random.RandomState) -> np.ndarray:
+        k = random.choice(len(self.weights), size=n, p=self.weights / self.weights.sum())
+        z = self.means[k] + np.einsum("nij,nj->ni", self.chol[k], random.standard_normal((n, self.means.shape[1])))
+        return np.clip(1.0 / (1.0 + np.exp(-z)), _EDGE, 1.0 - _EDGE)
+
+    def log_density(self, u: np.ndarray) -> np.ndarray:
+        from scipy.linalg import solve_triangular
+        from scipy.special import logsumexp
+
+        z = _logit(u)
+        per = np.stack([self._log_norm[k] - 0.5 * np.sum(solve_triangular(self.chol[k], (z - self.means[k]).T, lower=True) ** 2, axis=0)
+                        for k in range(len(self.weights))], axis=1)
+        return logsumexp(per, axis=1) - np.sum(np.log(u * (1.0 - u)), axis=1)
+
+
+def _logit(u: np.ndarray) -> np.ndarray:
+    u = np.clip(u, _EDGE, 1.0 - _EDGE)
+    return np.log(u) - np.log1p(-u)
+
+
+def _chain_moves(pilot: np.ndarray, seed: int) -> list:
+    """emcee moves of the independent chains, built from pilot draws ``pilot`` (n, d) in the
+    unit cube (module docstring). Both are Metropolis–Hastings moves of each walker alone, so
+    every walker is its own chain."""
+    import emcee
+
+    proposal = _Mixture.fit(pilot, seed)
+
+    def independence(coords: np.ndarray, random: np.random.RandomState) -> tuple[np.ndarray, np.ndarray]:
+        new = proposal.sample(len(coords), random)
+        return new, proposal.log_density(coords) - proposal.log_density(new)
+
+    walk = WALK_SCALE * np.atleast_2d(np.cov(pilot, rowvar=False)) + 1e-12 * np.eye(pilot.shape[1])
+    return [(emcee.moves.MHMove(independence), INDEPENDENCE_SHARE), (emcee.moves.GaussianMove(walk), 1.0 - INDEPENDENCE_SHARE)]
+
+
 def posterior(
     patient: Patient,
     *,
     start: Mapping[str, float] | None = None,
-    walkers: int = 32,
-    steps: int = 400,
+    walkers: int = 64,
+    steps: int = 200,
     burn: int | None = None,
+    chains: int = 64,
+    chain_steps: int = 1200,
+    chain_burn: int | None = None,
+    rounds: int = 2,
     spread: float = 0.02,
     seed: int = 0,
     noise: Mapping[str, float] = NOISE,
@@ -280,14 +392,19 @@ def posterior(
 ) -> Posterior:
     """Sample the posterior of :data:`DEFAULT_ACTION_PARAMS` for ``patient`` (module docstring).
 
-    ``start``: the walkers start in a ball of radius ``spread`` (unit-cube units) around it
-    (default: the patient's own values; a fit is better). ``burn``: steps dropped (default
-    ``steps // 2``). The env has ``walkers // 2`` members (emcee proposes half the ensemble at a time).
-    ``moves``: ``"de"`` (default: differential-evolution moves, 80 % ``DEMove`` and 20 %
-    ``DESnookerMove``, ter Braak & Vrugt 2008) or any ``moves`` emcee takes (``None``: its stretch
-    move). On the built-in N patient, 32 walkers × 1000 steps, "de" reached split R-hat 1.09–1.15
-    against 1.34–1.77 for the stretch move. ``plausibility``: the filling-pressure bands in the prior
-    factor (module docstring; :func:`lvenv.plausibility.resolve`).
+    Pilot: ``walkers`` × ``steps``, starting in a ball of radius ``spread`` (unit-cube units)
+    around ``start`` (default: the patient's own values; a fit is better); ``burn``: its steps
+    dropped (default ``steps // 2``). ``moves``: the pilot's, ``"de"`` (default:
+    differential-evolution moves, 80 % ``DEMove`` and 20 % ``DESnookerMove``, ter Braak & Vrugt
+    2008) or any ``moves`` emcee takes (``None``: its stretch move). Then ``rounds`` rounds of
+    ``chains`` independent chains × ``chain_steps``, ``chain_burn`` of each dropped (default
+    ``chain_steps // 8``): round 1 starts at pilot draws with the proposal fitted to them, each
+    later round continues the chains with the proposal refitted to the round before's draws
+    (the second half of them), and the last round is the sample. Rounds before the last only
+    improve the proposal and run ``chain_steps // 4`` steps. ``chains=0`` reports the pilot's walkers instead. The env has ``walkers // 2`` members
+    (emcee proposes half the ensemble at a time); the chains go through it in blocks of that
+    size. ``plausibility``: the filling-pressure bands in the prior factor (module docstring;
+    :func:`lvenv.plausibility.resolve`).
     """
     import emcee
 
@@ -297,12 +414,19 @@ def posterior(
     if walkers % 2:
         raise InputError(f"walkers = {walkers} must be even (emcee moves half the ensemble at a time)")
     burn = steps // 2 if burn is None else integer("burn", burn, 0, steps - 2)
+    chains = integer("chains", chains, 0)
+    if 0 < chains < 4:
+        raise InputError(f"chains = {chains}: give 0 (the pilot's walkers are the sample) or at least 4 (split R-hat compares chains)")
+    chain_steps = integer("chain_steps", chain_steps, 2)
+    chain_burn = chain_steps // 8 if chain_burn is None else integer("chain_burn", chain_burn, 0, chain_steps - 2)
+    rounds = integer("rounds", rounds, 1)
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     sigma = _sigma(patient, noise)
     targets = np.array(list(patient.targets.values()))
     target_names = list(patient.targets)
     bands = resolve_bands(plausibility)
-    venv = make_env(patient, walkers // 2, steps_per_beat, max_beats)
+    block_size = walkers // 2
+    venv = make_env(patient, block_size, steps_per_beat, max_beats)
     venv.reset(seed=seed)
     action_map = venv.unwrapped.config.actions
     counts = {"evaluations": 0, "failed": 0}
@@ -312,10 +436,10 @@ def posterior(
         inside = np.all((u >= 0.0) & (u <= 1.0), axis=1)
         x = space.from_unit(np.clip(u, 0.0, 1.0))
         out = np.full(len(u), -np.inf)
-        for start_row in range(0, len(u), walkers // 2):
-            block = slice(start_row, start_row + walkers // 2)
+        for start_row in range(0, len(u), block_size):
+            block = slice(start_row, start_row + block_size)
             rows = x[block]
-            padded = np.concatenate([rows, np.repeat(rows[-1:], walkers // 2 - len(rows), axis=0)])
+            padded = np.concatenate([rows, np.repeat(rows[-1:], block_size - len(rows), axis=0)])
             _, _, _, _, info = venv.step(action_map.to_action(padded))
             obs = np.stack([np.asarray(info[k], float) for k in target_names], axis=1)[: len(rows)]
             ok = np.isin(info["status"][: len(rows)], ("ok", "not_converged")) & np.all(np.isfinite(obs), axis=1)
@@ -334,11 +458,24 @@ def posterior(
     sampler = emcee.EnsembleSampler(walkers, space.dimension, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(seed).get_state()  # emcee's own generator, seeded
     sampler.run_mcmc(u0, steps, progress=False)
+    if chains:
+        draws = sampler.get_chain(discard=burn, flat=True)[np.isfinite(sampler.get_log_prob(discard=burn, flat=True))]
+        if len(draws) < 2 * space.dimension:
+            raise RuntimeError(f"only {len(draws)} of the pilot's draws had a usable simulation; start nearer a fit (start=) or run a longer pilot")
+        position = draws[rng.choice(len(draws), size=chains, replace=len(draws) < chains)]
+        for r in range(rounds):
+            last = r == rounds - 1
+            sampler = emcee.EnsembleSampler(chains, space.dimension, log_prob, vectorize=True, moves=_chain_moves(draws, seed + r))
+            sampler.random_state = np.random.RandomState(seed + 1 + r).get_state()
+            n = chain_steps if last else max(2, chain_steps // 4)
+            sampler.run_mcmc(position, n, progress=False, skip_initial_state_check=True)  # chains need no spread
+            draws, position = sampler.get_chain(discard=n // 2, flat=True), sampler.get_last_sample().coords
+        burn = chain_burn
     venv.close()
-    chain = sampler.get_chain(discard=burn)  # (kept steps, walkers, k), unit cube
+    chain = sampler.get_chain(discard=burn)  # (kept steps, walkers or chains, k), unit cube
     physical = space.from_unit(chain)
     tau = sampler.get_autocorr_time(discard=burn, quiet=True)
-    kept = chain.shape[0] * walkers
+    kept = chain.shape[0] * chain.shape[1]
     samples = {n: physical[..., j].T.reshape(-1) for j, n in enumerate(space.names)}
     return Posterior(
         samples=samples,
@@ -359,3 +496,85 @@ def probability_lower(a: Posterior, b: Posterior, name: str) -> float:
     other = np.sort(b.samples[name])
     above = len(other) - np.searchsorted(other, a.samples[name], side="right")  # b-samples above each a-sample
     return float(np.sum(above) / (len(a.samples[name]) * len(other)))
+
+
+def _bound_text(value: float | None, side: str) -> str:
+    return f"{value:.4g}" if value is not None else f"({side} bound)"
+
+
+def write_report(
+    patient: Patient,
+    fit: Mapping[str, float],
+    out_dir: str | pathlib.Path,
+    *,
+    grid: int = 7,
+    options: CohortOptions | None = None,
+    posterior_options: Mapping[str, Any] | None = None,
+    noise: Mapping[str, float] = NOISE,
+) -> pathlib.Path:
+    """Per-patient identifiability report at the fit ``fit`` (parameters by name, physical units).
+
+    Writes to ``out_dir``: ``identifiability.md`` (targets and their σ, the fit, the sensitivity's
+    singular values and null directions, each parameter's profile class and 95 % interval, the
+    posterior's medians, 90 % intervals and diagnostics), ``profiles.png``
+    (:func:`lvenv.plots.profile_figure`), ``posterior_pairs.png`` (:func:`lvenv.plots.pairs_figure`)
+    and ``identifiability.json`` (every number, internal units). ``grid`` and ``options``: of
+    :func:`profile`; ``posterior_options``: keywords of :func:`posterior`. Returns the markdown's
+    path. Takes a few minutes on 2 cores with the defaults (mostly the posterior).
+    """
+    from lvenv.plots import pairs_figure, profile_figure
+
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
+    fit = {n: float(fit[n]) for n in space.names}
+    log = dict(zip(space.names, space.log))
+    prof = profile(patient, grid=grid, fit=fit, noise=noise, options=options)
+    post = posterior(patient, start=fit, noise=noise, **dict(posterior_options or {}))
+    profile_figure(prof.grid, prof.chi2, prof.chi2_min, out / "profiles.png", DELTA_95, log=log, best=fit)
+    pairs_figure({patient.name: post.samples}, out / "posterior_pairs.png", log=log)
+    sigma = dict(zip(patient.targets, _sigma(patient, noise)))
+    lines = [f"# Identifiability of {patient.name}", "",
+             "Internal units (s, ml, kPa). Measurement model, priors and methods: `optim.identify`.", "",
+             "| target | value | σ |", "|---|---|---|",
+             *(f"| {k} | {v:.4g} | {sigma[k]:.3g} |" for k, v in patient.targets.items()), "",
+             "## Fit", "", "| parameter | value | units |", "|---|---|---|",
+             *(f"| {n} | {fit[n]:.4g} | {ACTION_BOUNDS[n].units} |" for n in space.names), "",
+             f"χ² at the fit: {chi2(patient, _observe(patient, fit), noise):.3g}", "",
+             "## Sensitivity at the fit", ""]
+    sens = prof.sensitivity
+    if sens is None:
+        lines += ["No usable steady state at the fit: no sensitivity.", ""]
+    else:
+        lines += ["Singular values of diag(1/σ) dM/du (χ per unit-cube step): " + ", ".join(f"{v:.3g}" for v in sens.singular_values), ""]
+        lines += [f"* null direction {j + 1}: " + ", ".join(f"{n} {v:+.2f}" for n, v in d.items()) for j, d in enumerate(sens.null_directions)]
+        lines += [""]
+    lines += ["## Profile likelihoods", "",
+              f"{grid} constrained fits per parameter over its bound; Δχ² = {DELTA_95} marks the 95 % interval. ![profiles](profiles.png)", "",
+              "| parameter | class | 95 % interval (outer grid points) | profile range (Δχ²) |", "|---|---|---|---|"]
+    for n in space.names:
+        lo, hi = prof.interval[n]
+        values = prof.chi2[n]
+        spread = f"{np.nanmax(values) - np.nanmin(values):.3g}" if np.isfinite(values).any() else "—"
+        lines.append(f"| {n} | {prof.classification[n]} | [{_bound_text(lo, 'lower')}, {_bound_text(hi, 'upper')}] | {spread} |")
+    lines += ["", "## Posterior", "",
+              f"{post.evaluations} evaluations ({post.failed} failed), acceptance {post.acceptance:.2f}. ![posterior pairs](posterior_pairs.png)", "",
+              "| parameter | median | 90 % interval | split R-hat | ESS |", "|---|---|---|---|---|"]
+    for n in space.names:
+        lo, hi = post.interval_90[n]
+        lines.append(f"| {n} | {post.median[n]:.4g} | [{lo:.4g}, {hi:.4g}] | {post.rhat[n]:.3f} | {post.ess[n]:.0f} |")
+    if max(post.rhat.values()) >= 1.01:
+        lines += ["", f"**Not converged**: split R-hat up to {max(post.rhat.values()):.3f} (≥ 1.01); run longer chains (`chain_steps`)."]
+    path = out / "identifiability.md"
+    path.write_text("\n".join(lines) + "\n")
+    sens_dict = None if sens is None else {"singular_values": sens.singular_values.tolist(), "null_directions": sens.null_directions}
+    (out / "identifiability.json").write_text(json.dumps({"patient": patient.name, "targets": patient.targets, "noise": sigma, "fit": fit,
+                                                          "sensitivity": sens_dict, "profiles": prof.to_dict(), "posterior": post.to_dict()},
+                                                         indent=2, default=float))
+    return path
+
+
+def _observe(patient: Patient, parameters: Mapping[str, float]) -> dict[str, float]:
+    """Steady-state metrics of ``patient``'s heart at ``parameters``."""
+    sim = lvenv.simulate(patient.heart.replace(**dict(parameters)), traces=False)
+    return {k: float(sim.metrics[k]) for k in patient.targets}

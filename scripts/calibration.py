@@ -1,6 +1,6 @@
 """Calibration of the posterior on synthetic truths (issue 11 item 5): do 90 % intervals hold the truth 90 % of the time?
 
-    python scripts/calibration.py [--truths 20] [--walkers 32] [--steps 800] [--out out/identify/calibration.json]
+    python scripts/calibration.py [--truths 20] [--walkers 64] [--steps 200] [--chains 64] [--chain-steps 1200] [--out out/identify/calibration.json]
 
 Draws ``--truths`` random parameter sets inside the identification bounds whose hearts meet every
 plausibility band (``optim.fit``'s synthetic truths), simulates the built-in patients' four targets
@@ -34,8 +34,10 @@ TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--truths", type=int, default=20)
-    ap.add_argument("--walkers", type=int, default=32)
-    ap.add_argument("--steps", type=int, default=800)
+    ap.add_argument("--walkers", type=int, default=64, help="the pilot ensemble's walkers")
+    ap.add_argument("--steps", type=int, default=200, help="the pilot's steps")
+    ap.add_argument("--chains", type=int, default=64, help="independent chains after the pilot (0: the pilot's walkers are the sample)")
+    ap.add_argument("--chain-steps", type=int, default=1200)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--out", default="out/identify/calibration.json")
     a = ap.parse_args()
@@ -51,7 +53,7 @@ def main() -> None:
         venv = make_env(dataclasses.replace(patient, weights={k: (t / s) ** 2 for (k, t), s in zip(patient.targets.items(), sigma)}))
         fit = minimize(venv, "mads", budget=480, seed=a.seed + i, progress=False)
         venv.close()
-        post = posterior(patient, start=fit.parameters, walkers=a.walkers, steps=a.steps, seed=a.seed + i)
+        post = posterior(patient, start=fit.parameters, walkers=a.walkers, steps=a.steps, chains=a.chains, chain_steps=a.chain_steps, seed=a.seed + i)
         true = dict(zip(DEFAULT_ACTION_PARAMS, map(float, truth)))
         hit = {n: bool(post.interval_90[n][0] <= true[n] <= post.interval_90[n][1]) for n in DEFAULT_ACTION_PARAMS}
         for n in DEFAULT_ACTION_PARAMS:

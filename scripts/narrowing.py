@@ -1,6 +1,6 @@
 """How much each added measurement narrows the posterior (issue 11 item 6): on synthetic patients.
 
-    python scripts/narrowing.py [--truths 3] [--walkers 32] [--steps 800] [--out out/identify/narrowing.json]
+    python scripts/narrowing.py [--truths 3] [--walkers 64] [--steps 200] [--chains 64] [--chain-steps 1200] [--out out/identify/narrowing.json]
 
 Draws ``--truths`` random parameter sets inside the identification bounds whose hearts meet every
 plausibility band (``optim.fit``'s synthetic truths), takes their noise-free steady-state metrics
@@ -43,8 +43,10 @@ SETS = {
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--truths", type=int, default=3)
-    ap.add_argument("--walkers", type=int, default=32)
-    ap.add_argument("--steps", type=int, default=800)
+    ap.add_argument("--walkers", type=int, default=64, help="the pilot ensemble's walkers")
+    ap.add_argument("--steps", type=int, default=200, help="the pilot's steps")
+    ap.add_argument("--chains", type=int, default=64, help="independent chains after the pilot (0: the pilot's walkers are the sample)")
+    ap.add_argument("--chain-steps", type=int, default=1200)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/identify/narrowing.json")
     a = ap.parse_args()
@@ -59,7 +61,7 @@ def main() -> None:
         for name, targets in SETS.items():
             patient = Patient(f"truth {i}", base.heart, {k: values[k] for k in targets})
             t0 = time.perf_counter()
-            post = posterior(patient, start=start, walkers=a.walkers, steps=a.steps, seed=a.seed + i)
+            post = posterior(patient, start=start, walkers=a.walkers, steps=a.steps, chains=a.chains, chain_steps=a.chain_steps, seed=a.seed + i)
             widths[name].append(post.widths())
             runs.append({"truth": i, "set": name, "parameters": start, "widths": post.widths(), "rhat": post.rhat,
                          "acceptance": post.acceptance, "failed": post.failed, "wall_s": time.perf_counter() - t0})

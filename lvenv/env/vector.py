@@ -32,7 +32,7 @@ from lvenv.plausibility import resolve as resolve_bands
 from lvenv.simulation import DEFAULT_STEP_TOL, check_settings
 from lvenv.validation import InputError, choice, integer, real, real_array
 
-__all__ = ["LVHeartVectorEnv", "TRACES", "STATE_FIELDS", "info_metrics"]
+__all__ = ["LVHeartVectorEnv", "MAX_ENVS", "TRACES", "STATE_FIELDS", "info_metrics"]
 
 #: Fields of :meth:`LVHeartVectorEnv.get_state` (host NumPy arrays, member axis first).
 STATE_FIELDS = ("y", "steps", "needs_reset", "key", "parameters")
@@ -85,11 +85,16 @@ def _scatter(old: np.ndarray, idx: np.ndarray, part: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Members of one vector env, at most: 64 times the largest batch benchmarked on a GPU (65,536),
+#: and a bound that keeps a mistyped ``num_envs`` from exhausting memory before anything runs.
+MAX_ENVS = 2**22
+
+
 class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
     """Vectorised ``lvenv/LVHeart-v0``; see :mod:`lvenv.env.core` for dynamics and reward.
 
     Args:
-        num_envs: members N (an integer ≥ 1).
+        num_envs: members N (an integer in [1, :data:`MAX_ENVS`]).
         patient: built-in name, path to a patient JSON record, :class:`~lvenv.patients.Patient`,
             record dict, or a list with one per member.
         action_params: names of the parameters under identification (default τ2, Sa, R2, R3, C, Cat).
@@ -136,7 +141,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         plausibility: bool | Sequence[Band] = True,
         volume_trace: bool | None = None,
     ):
-        num_envs = integer("num_envs", num_envs, 1)
+        num_envs = integer("num_envs", num_envs, 1, MAX_ENVS)
         choice("render_mode", render_mode, (None, "rgb_array"))
         try:
             autoreset_mode = AutoresetMode(autoreset_mode)

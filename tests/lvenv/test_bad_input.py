@@ -109,6 +109,7 @@ def test_simulate_settings_are_checked(kwargs, message):
         (dict(rtol=float("inf")), "rtol = inf"),
         (dict(num_envs=2.5), "num_envs = 2.5"),
         (dict(num_envs=True), "num_envs = True"),
+        (dict(num_envs=2.811547515849893e16), r"num_envs = 2.8\d*e\+16 must be an integer in \[1, 4194304\]"),  # found by test_fuzz
         (dict(tolerance=-1.0), "tolerance = -1.0"),
         (dict(max_episode_steps=0), "max_episode_steps = 0"),
         (dict(obs_noise=[0.1, 0.2]), "obs_noise"),

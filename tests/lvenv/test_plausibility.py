@@ -62,15 +62,15 @@ def test_least_squares_band_residuals_and_their_jacobian_match_central_differenc
     space = ParameterSpace.for_names(("tau2", "Sa", "R2", "R3", "C", "Cat"))
     problem = _Problem(builtin("normal"), space, 1000, 200, resolve(True))
     u = space.to_unit(np.array(CONGESTED))
-    residual, jacobian = problem.residual(u), problem.jacobian(u)
+    step, columns = 1e-4, (1, 5)  # Sa and Cat
+    shifted = [u + sign * step * np.eye(space.dimension)[j] for j in columns for sign in (1.0, -1.0)]
+    (residual, jacobian), *others = problem.evaluate([u, *shifted], [0] * (1 + len(shifted)))  # one batch
     n_targets = len(problem.targets)
     band_res = residual[n_targets:]
     assert band_res[0] == 0.0, "the aortic band holds"
     assert band_res[1] > 0.5 and band_res[2] > 0.3, "mean atrial pressure and EDP above 25 mmHg"
-    step = 1e-4
-    for j in (1, 5):  # Sa and Cat
-        e = np.eye(space.dimension)[j] * step
-        numeric = (problem.residual(u + e)[n_targets:] - problem.residual(u - e)[n_targets:]) / (2 * step)
+    for i, j in enumerate(columns):
+        numeric = (others[2 * i][0][n_targets:] - others[2 * i + 1][0][n_targets:]) / (2 * step)
         np.testing.assert_allclose(jacobian[n_targets:, j], numeric, rtol=1e-3, atol=1e-6)
 
 

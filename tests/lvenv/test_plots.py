@@ -16,3 +16,18 @@ def test_generalisation_panel_draws_each_scenario_in_png_and_pdf(tmp_path):
     assert png.read_bytes()[:4] == b"\x89PNG" and pdf.read_bytes()[:5] == b"%PDF-"
     with pytest.raises(ValueError, match="must end in one of"):
         plots.generalisation_figure(rows, tmp_path / "g.svg", columns=2)
+
+
+def test_pairs_figure_draws_every_pair_of_each_posterior_on_the_requested_axes(tmp_path):
+    import numpy as np
+    from matplotlib.image import imread
+
+    rng = np.random.default_rng(0)
+    samples = {label: {"tau2": np.exp(rng.normal(np.log(0.2), 0.2, 500)), "Sa": rng.normal(1.0, 0.1, 500), "R2": rng.uniform(0.0, 0.05, 500)}
+               for label in ("normal", "heart_failure")}
+    png = plots.pairs_figure(samples, tmp_path / "pairs.png", log={"tau2": True}, max_points=100)
+    image = imread(png)
+    assert image.shape[0] == image.shape[1] > 300, "a square grid, one panel per pair"
+    assert len(np.unique(image.reshape(-1, image.shape[-1]), axis=0)) > 10, "something was drawn"
+    with pytest.raises(ValueError, match="must end in one of"):
+        plots.pairs_figure(samples, tmp_path / "pairs.svg")

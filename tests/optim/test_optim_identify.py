@@ -24,6 +24,19 @@ def test_null_directions_change_no_target_and_four_targets_leave_two_of_them():
     assert all(0.0 <= sens.null_component(n) <= 1.0 + 1e-12 for n in sens.names)
 
 
+def test_profile_interval_spans_every_point_below_the_threshold():
+    """A constrained fit can only stall above the true profile, so a high point between two low
+    ones does not end the interval; NaN (failed) points are skipped."""
+    from optim.identify import _interval
+
+    grid = np.arange(7.0)
+    assert _interval(grid, np.array([110, 72, 19, 0, 37, 6, 3.0]), 3.84) == (2.0, None)
+    assert _interval(grid, np.array([9, 1, 0, 2, 9, 9, 9.0]), 3.84) == (0.0, 4.0)
+    assert _interval(grid, np.array([9, np.nan, 0, 2, np.nan, 9, 1.0]), 3.84) == (0.0, None)
+    assert _interval(grid, np.array([np.nan, 1, 0, 2, np.nan, 9, 9.0]), 3.84) == (None, 5.0)
+    assert _interval(grid, np.array([9, 8, 5, 6, 9, 9, 9.0]), 3.84) == (1.0, 3.0), "all above: around its own minimum"
+
+
 def test_each_profile_point_is_a_constrained_fit_with_the_chi2_it_reports():
     patient = builtin("heart_failure")
     options = CohortOptions(budget=48, stop_mismatch=0.0, steps_per_beat=STEPS, confirm_steps=4)
@@ -59,14 +72,17 @@ def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the
     patient = builtin("normal")
     wide = {k: 100 * v for k, v in NOISE.items()}
     narrow = {k: v / 100 for k, v in NOISE.items()}
-    kwargs = dict(walkers=16, steps=30, burn=10, steps_per_beat=STEPS, max_beats=30, seed=3)
+    kwargs = dict(walkers=16, steps=30, burn=10, chains=8, chain_steps=40, chain_burn=8, steps_per_beat=STEPS, max_beats=30, seed=3)
     flat, sharp = posterior(patient, noise=wide, **kwargs), posterior(patient, noise=narrow, **kwargs)
-    for post in (flat, sharp):
-        assert post.evaluations == 16 * (30 + 1), "the initial ensemble plus one proposal per walker and step"
+    pilot = posterior(patient, noise=narrow, **{**kwargs, "chains": 0})
+    for post, evaluations, draws in ((flat, 16 * 31 + 8 * (11 + 41), 32 * 8), (sharp, 16 * 31 + 8 * (11 + 41), 32 * 8), (pilot, 16 * 31, 20 * 16)):
+        # each sampler evaluates its starting points once, then one proposal per walker (chain) and step;
+        # the chains' first round runs chain_steps // 4 steps
+        assert post.evaluations == evaluations
         assert 0.0 <= post.acceptance <= 1.0 and 0 <= post.failed <= post.evaluations
         for name, values in post.samples.items():
             bound = ACTION_BOUNDS[name]
-            assert values.shape == (20 * 16,) and np.all((values >= bound.lo) & (values <= bound.hi))
+            assert values.shape == (draws,) and np.all((values >= bound.lo) & (values <= bound.hi))
             lo, hi = post.interval_90[name]
             assert lo <= post.median[name] <= hi
     spread = lambda post, name: np.std(np.log(post.samples[name]))
@@ -78,3 +94,95 @@ def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the
         expected = np.log(hi / lo) / np.log(bound.hi / bound.lo) if bound.log else (hi - lo) / (bound.hi - bound.lo)
         assert width == pytest.approx(expected, rel=1e-9) and 0.0 <= width <= 1.0, name
     assert flat.widths()["tau2"] > sharp.widths()["tau2"]
+
+
+def _ridge_log_density(u: np.ndarray) -> np.ndarray:
+    """A curved ridge in the 6-D unit cube (x = u − 1/2): x1 ≈ 2 x0² − 0.1 within 0.03, x0 ~ N(0, 0.2²),
+    the rest N(0, 0.1²), truncated to the cube."""
+    u = np.atleast_2d(u)
+    x = u - 0.5
+    value = -0.5 * (((x[:, 1] - 2.0 * x[:, 0] ** 2 + 0.1) / 0.03) ** 2 + (x[:, 0] / 0.2) ** 2 + np.sum((x[:, 2:] / 0.1) ** 2, axis=1))
+    return np.where(np.all((u >= 0.0) & (u <= 1.0), axis=1), value, -np.inf)
+
+
+def _ridge_draws(n: int, rng: np.random.Generator) -> np.ndarray:
+    x0 = rng.normal(0.0, 0.2, n)
+    x = np.column_stack([x0, 2.0 * x0**2 - 0.1 + 0.03 * rng.standard_normal(n), rng.normal(0.0, 0.1, (n, 4))]) + 0.5
+    return x[np.all((x >= 0.0) & (x <= 1.0), axis=1)]
+
+
+def test_independent_chains_sample_a_known_ridge_even_from_a_wrong_pilot():
+    """The chains' moves are Metropolis–Hastings with the proposal's density in the acceptance
+    ratio, so they sample the target whatever the pilot draws were: here a straight, shifted and
+    too narrow Gaussian instead of the curved ridge. Quantiles against direct draws of the ridge."""
+    import emcee
+
+    from optim.identify import _chain_moves, _split_rhat
+
+    rng = np.random.default_rng(0)
+    truth = _ridge_draws(200_000, rng)
+    pilot = np.clip(rng.normal(0.55, 0.05, (2000, 6)), 0.01, 0.99)
+
+    def run(rounds: tuple[int, ...]) -> emcee.EnsembleSampler:
+        draws, position = pilot, pilot[:64]
+        for r, steps in enumerate(rounds):
+            sampler = emcee.EnsembleSampler(64, 6, _ridge_log_density, vectorize=True, moves=_chain_moves(draws, r))
+            sampler.random_state = np.random.RandomState(r).get_state()
+            sampler.run_mcmc(position, steps, progress=False)
+            draws, position = sampler.get_chain(discard=steps // 2, flat=True), sampler.get_last_sample().coords
+        return sampler
+
+    def worst_rhat(sampler: emcee.EnsembleSampler) -> float:
+        chain = sampler.get_chain(discard=100)
+        return max(_split_rhat(chain[..., j].T) for j in range(6))
+
+    assert worst_rhat(run((150, 600))) > 1.1, "two rounds from this pilot have not mixed, and the chains' R-hat says so"
+    sampler = run((150, 150, 150, 600))  # each refit moves the proposal closer to the ridge
+    got = sampler.get_chain(discard=100, flat=True)
+    for q in (5, 50, 95):
+        np.testing.assert_allclose(np.percentile(got, q, axis=0), np.percentile(truth, q, axis=0), atol=0.015, err_msg=f"{q} % quantile")
+    assert worst_rhat(sampler) < 1.1
+    assert 0.3 < np.mean(sampler.acceptance_fraction) < 0.95
+
+
+def test_mixture_proposal_density_matches_its_draws():
+    """The proposal's density on the unit cube (logit change of variables included) against a
+    histogram of its own draws, in 1-D, where a missing Jacobian would be off by a factor u (1 − u)."""
+    from optim.identify import _Mixture
+
+    rng = np.random.default_rng(1)
+    mix = _Mixture.fit(np.clip(rng.beta(2.0, 5.0, (4000, 1)), 1e-6, 1 - 1e-6), seed=0)
+    draws = mix.sample(1_000_000, np.random.RandomState(2))[:, 0]
+    counts, edges = np.histogram(draws, bins=25, range=(0.0, 1.0))
+    fine = np.linspace(0.0, 1.0, 25 * 40 + 1)[1:-1]  # the density averaged over each bin, on 40 points a bin
+    density = np.exp(mix.log_density(fine[:, None]))
+    per_bin = np.array([np.mean(density[(fine >= a) & (fine < b)]) for a, b in zip(edges[:-1], edges[1:])])
+    expected = counts / (len(draws) * np.diff(edges))
+    busy = counts > 5000  # Poisson error below 1.4 %
+    np.testing.assert_allclose(per_bin[busy], expected[busy], rtol=0.05)
+    assert np.sum(per_bin * np.diff(edges)) == pytest.approx(1.0, abs=0.01)
+
+
+def test_identifiability_report_holds_every_parameter_its_figures_and_the_numbers_behind_them(tmp_path):
+    import json
+
+    from optim.identify import write_report
+
+    patient = builtin("normal")
+    fit = {n: float(patient.heart.get(n)) for n in ACTION_BOUNDS}
+    options = CohortOptions(candidates=8, budget=16, stop_mismatch=0.0, slots=32)
+    small = dict(walkers=16, steps=10, burn=4, chains=8, chain_steps=16, chain_burn=4, steps_per_beat=STEPS, max_beats=30)
+    path = write_report(patient, fit, tmp_path, grid=3, options=options, posterior_options=small)
+    text = path.read_text()
+    record = json.loads((tmp_path / "identifiability.json").read_text())
+    for image in ("profiles.png", "posterior_pairs.png"):
+        assert (tmp_path / image).read_bytes()[:4] == b"\x89PNG" and f"({image})" in text
+    classes = {"identified", "practically non-identifiable", "structurally non-identifiable", "no usable fit"}
+    for name in ACTION_BOUNDS:
+        assert record["profiles"]["classification"][name] in classes
+        row = next(line for line in text.splitlines() if line.startswith(f"| {name} | {record['profiles']['classification'][name]} |"))
+        assert "[" in row
+        median = record["posterior"]["median"][name]
+        assert f"| {name} | {median:.4g} |" in text, "the posterior table shows the JSON's median"
+    assert record["fit"] == fit and set(record["targets"]) == set(patient.targets)
+    assert len(record["sensitivity"]["null_directions"]) == 2, "four targets, six parameters"

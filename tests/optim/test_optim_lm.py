@@ -31,3 +31,22 @@ def test_gauss_newton_reaches_a_zero_residual_fit_from_a_nearby_start_and_report
     check = lvenv.simulate(base.replace(**res.parameters), steps_per_beat=STEPS, rtol=1e-10, max_beats=2000, traces=False)
     for k in targets:
         assert check.metrics[k] == pytest.approx(patient.targets[k], rel=2e-2)
+
+
+def test_starts_run_as_one_batch_and_each_takes_the_path_it_takes_alone():
+    """Two starts share each batched evaluation; start 0's points and objective values are those
+    of a run with start 0 alone (the batch's members do not interact), and the history lists the
+    starts' points in batch order, start by start."""
+    base = presets.normal(lo="table3")
+    patient = Patient("synthetic", base, {"EF": 0.55, "ET": 0.29, "IVRT": 0.08, "P_ao_pulse": 5.3})
+    alone = fit_lm(patient, budget=6, starts=1, steps_per_beat=STEPS)
+    both = fit_lm(patient, budget=12, starts=2, steps_per_beat=STEPS)
+    start = both.optim_result.history.batch  # the optimiser's history: the start of each row
+    assert set(start) == {0, 1} and both.optim_result.info["starts"] == 2
+    np.testing.assert_array_equal(both.history.x[start == 0], alone.history.x)
+    np.testing.assert_array_equal(both.history.f[start == 0], alone.history.f)
+    assert np.sum(start == 0) <= 6 and np.sum(start == 1) <= 6 and both.evaluations == len(start)
+    # the env history counts batched evaluations: the two starting points went together
+    assert list(start[:2]) == [0, 1] and list(both.history.batch[:2]) == [0, 0]
+    assert both.optim_result.batches == both.history.batch[-1] + 1 < both.evaluations
+    assert both.mismatch == pytest.approx(float(np.min(both.history.mismatch)))
