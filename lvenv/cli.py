@@ -314,6 +314,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 
         sens = sensitivity(record, res.parameters, steps_per_beat=steps_per_beat)
         payload["identifiability"] = {"singular_values": sens.singular_values, "null_directions": sens.null_directions}
+    if report_dir is not None and not ok:
+        _err.print(f"no identifiability report: the fit has no usable steady state (status {res.status})", markup=False)
     if report_dir is not None and ok:
         from optim.cohort import CohortOptions
         from optim.identify import write_report
