@@ -1,8 +1,8 @@
 """Safe, atomic files of named arrays plus JSON metadata (``.npz``; never pickle).
 
 One format for everything lvenv and its packages write to resume from or to cache: optimiser
-and environment checkpoints (:mod:`optim.protocol`, :mod:`optim.minimize`) and FE oracle
-results (:mod:`fe_oracle.cache`). A file is a NumPy ``.npz`` archive of numeric, boolean or
+and environment checkpoints (:mod:`optim.protocol`, :mod:`optim.minimize`), FE oracle
+results (:mod:`fe_oracle.cache`) and the finished items of long studies (:func:`save_records`). A file is a NumPy ``.npz`` archive of numeric, boolean or
 fixed-width string arrays and one ``__meta__`` entry holding JSON text; it is read with
 ``allow_pickle=False``, so loading a file from elsewhere cannot run code.
 
@@ -24,7 +24,7 @@ import numpy as np
 
 from lvenv.validation import InputError
 
-__all__ = ["ArchiveError", "save", "load", "META"]
+__all__ = ["ArchiveError", "save", "load", "META", "save_records", "load_records"]
 
 META = "__meta__"
 
@@ -73,3 +73,23 @@ def load(path: str | os.PathLike[str], what: str = "file") -> tuple[dict[str, np
     if not isinstance(meta, dict):
         raise ArchiveError(f"{what} {str(path)!r} has no metadata object; delete it or move it away to start afresh")
     return arrays, meta
+
+
+def save_records(path: str | os.PathLike[str], records: list[dict[str, Any]], settings: dict[str, Any]) -> pathlib.Path:
+    """Atomically write a long study's finished ``records`` (JSON-able) with the ``settings``
+    that produced them, for :func:`load_records` to resume from."""
+    return save(path, {}, {"settings": settings, "records": records})
+
+
+def load_records(path: str | os.PathLike[str], settings: dict[str, Any]) -> list[dict[str, Any]]:
+    """The records :func:`save_records` wrote to ``path`` under equal ``settings``; ``[]`` when
+    there is no file. :class:`ArchiveError` if the file is damaged or its settings differ
+    (naming both), since mixing the records of two settings would be wrong."""
+    if not pathlib.Path(path).exists():
+        return []
+    _, meta = load(path, "study checkpoint")
+    settings = json.loads(json.dumps(settings))
+    if meta.get("settings") != settings or not isinstance(meta.get("records"), list):
+        raise ArchiveError(f"study checkpoint {str(path)!r} was written with settings {meta.get('settings')}, not {settings}; "
+                           "delete it or move it away to start afresh")
+    return meta["records"]

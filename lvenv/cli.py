@@ -322,7 +322,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 
         options = CohortOptions(budget=480, stop_mismatch=0.0, plausibility=plausibility, seed=seed)
         with _working("profiles and posterior for the identifiability report"):
-            payload["report"] = str(write_report(record, res.parameters, report_dir, options=options,
+            payload["report"] = str(write_report(record, res.parameters, res.observation, report_dir, options=options,
                                                  posterior_options={"plausibility": plausibility, "seed": seed}))
     if fidelity and ok:
         try:

@@ -36,12 +36,14 @@ __all__ = ["request_cpu_devices", "shard_members", "padded_size", "layout", "mem
 MIN_MEMBERS_PER_DEVICE = 64
 #: Members per device are padded to a multiple of this (module docstring).
 LANES = 16
-#: On the CPU a device runs its members in blocks of at most this many, one block after the other
-#: (``LVENV_CPU_BLOCK`` overrides it; 0 turns blocks off). A block's working set stays in the core's
-#: cache: measured on this 2-core EPYC (jitted core, 1000 fixed steps per beat), batches of 1,024
-#: and 4,096 ran 9.3 k and 9.1 k beats/s without blocks and 14.8 k and 15.0 k with blocks of 256,
-#: as fast as a batch of 256 (15.6 k); blocks of 128 were no faster, 512 slower.
-CPU_BLOCK = 256
+#: On the CPU a device runs its members in blocks of at most this many, one block after the other,
+#: or queued through this many lanes (:func:`lvenv.simulation.run_beats_queued`; ``LVENV_CPU_BLOCK``
+#: overrides it; 0 turns blocks off). A block's working set stays in the core's cache: measured on
+#: this 2-core EPYC (jitted core, 1000 fixed steps per beat), batches of 1,024 and 4,096 ran 9.3 k
+#: and 9.1 k beats/s without blocks and 14.8 k and 15.0 k with blocks of 256. The adaptive
+#: scheme's replay grid (1,024 trial steps per member) is 2 MB at 256 members, and 64 were faster
+#: for both schemes (README, Performance).
+CPU_BLOCK = 64
 
 
 def request_cpu_devices() -> None:

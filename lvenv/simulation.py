@@ -23,8 +23,10 @@ P_lv falls below ``rtol``; ``acceleration="anderson"`` reaches it in fewer beats
 extrapolating the beat map's fixed point every second beat (:func:`run_beats`).
 
 :func:`run_beats_parallel` runs the core over a padded batch's layout (:func:`lvenv.devices.layout`):
-each device its own loops, and on the CPU blocks of at most 256 members one after the other, so
-that a block's working set stays in cache. :data:`run_beats_jit` is its jitted form.
+each device its own loops, and on the CPU blocks of at most :data:`lvenv.devices.CPU_BLOCK`
+members one after the other, so that a block's working set stays in cache, or, for the adaptive
+scheme to steady state, the device's members queued through that many lanes
+(:func:`run_beats_queued`). :data:`run_beats_jit` is its jitted form.
 
 Status (:mod:`lvenv.status`): a member whose state turns non-finite or leaves its physical range
 is ``nonfinite`` / ``diverged``; a last beat without the full valve cycle is ``no_valve_cycle``;
@@ -54,7 +56,7 @@ from lvenv.params import Heart, as_batch
 from lvenv.status import DIVERGED, EF_MIN, NO_VALVE_CYCLE, NON_PHYSICAL, NONFINITE, NOT_CONVERGED, OK, STATUS, is_usable, names
 from lvenv.validation import InputError, choice, integer, real, real_array
 
-__all__ = ["STATUS", "SimulationResult", "Traces", "simulate", "run_beats", "run_beats_parallel", "run_beats_jit", "check_settings", "MIN_STEPS_PER_BEAT", "SCHEMES", "DEFAULT_STEP_TOL", "ACCELERATIONS"]
+__all__ = ["STATUS", "SimulationResult", "Traces", "simulate", "run_beats", "run_beats_parallel", "run_beats_queued", "run_beats_jit", "check_settings", "MIN_STEPS_PER_BEAT", "SCHEMES", "DEFAULT_STEP_TOL", "ACCELERATIONS"]
 
 _MAX_VOLUME_FACTOR = 20.0  # V > 20 V0 is treated as divergence
 _MAX_PRESSURE = 200.0  # kPa; |P| beyond this is treated as divergence
@@ -288,10 +290,25 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
     """
     if scheme == "adaptive" and record:
         raise ValueError("traces are recorded by the fixed scheme only (scheme='fixed')")
+    settings = dict(steps=steps, steady=steady, record=record, scheme=scheme, step_tol=step_tol, acceleration=acceleration,
+                    volume_trace=volume_trace)
+    carry0 = {"n": jnp.asarray(0), **_start_carry(y0, **settings)}
+    scale = _state_scale(p, y0.dtype)
+
+    def cond(c):
+        return (c["n"] < max_beats) & jnp.any(c["active"])
+
+    def body(c):
+        return {"n": c["n"] + 1, **_advance(p, scale, c, rtol, **settings)}
+
+    return _finish(jax.lax.while_loop(cond, body, carry0), steady)
+
+
+def _start_carry(y0: jax.Array, *, steps: int, steady: bool, record: bool, scheme: str, acceleration: str, **_) -> dict:
+    """Loop state of :func:`run_beats` for members starting at ``y0`` (9, B)."""
     n_members = y0.shape[1]
     zeros = jnp.zeros((n_members,), y0.dtype)
-    carry0 = {
-        "n": jnp.asarray(0),
+    carry = {
         "y": y0,
         "metrics": {k: zeros for k in METRIC_NAMES},
         "valid": jnp.zeros((n_members,), bool),
@@ -307,82 +324,139 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
         "hist": (y0, y0, y0, y0, jnp.zeros((n_members,), jnp.int32)),
     }
     if scheme == "adaptive":
-        carry0["grid"] = (jnp.zeros((GRID_STEPS, n_members), y0.dtype), jnp.zeros((n_members,), jnp.int32))
-    scale = _state_scale(p, y0.dtype)
+        carry["grid"] = (jnp.zeros((GRID_STEPS, n_members), y0.dtype), jnp.zeros((n_members,), jnp.int32))
     if record:
-        carry0["traces"] = tuple(jnp.zeros((steps + 1, n_members), y0.dtype) for _ in range(3))
+        carry["traces"] = tuple(jnp.zeros((steps + 1, n_members), y0.dtype) for _ in range(3))
+    return carry
 
-    def cond(c):
-        return (c["n"] < max_beats) & jnp.any(c["active"])
 
-    def body(c):
-        x = c["start"]
-        if scheme == "adaptive":
-            y1, m, valid, trials, grid = beat_adaptive(p, x, step_tol, MAX_ADAPTIVE_STEPS, c["grid"], volume_trace)
-            traces = None
-        else:
-            y1, m, valid, traces = beat(p, x, steps, record, volume_trace)
-            trials = jnp.full(n_members, steps, jnp.int32)
-        finite = jnp.all(jnp.isfinite(y1), axis=0)
-        for key in SUMMARY_NAMES:  # the frames are NaN without volume_trace
-            finite &= jnp.isfinite(m[key])
-        v = y1[IDX_V]
-        in_range = (v > 0.0) & (v < _MAX_VOLUME_FACTOR * p.v0) & (jnp.abs(y1[IDX_PC]) < _MAX_PRESSURE) & (jnp.abs(m["P_lv_peak"]) < _MAX_PRESSURE)
-        ok = finite & in_range
-        dropped = c["active"] & ~ok & ~c["plain"]  # a failed extrapolation: back to the last plain end
-        accept = c["active"] & ok
-        failed = c["active"] & ~ok & c["plain"]
-        change = jnp.where((c["beats"] >= 1) & valid & c["valid"], _relative_change(m, c["metrics"]), jnp.inf)
-        converged = c["plain"] & (change < rtol)
-        stalled = c["plain"] & jnp.isfinite(c["change"]) & (change >= c["change"])  # a plain beat's change did not fall since the last one
-        x1, f1, x2, _, count = c["hist"]
-        hist = _select(accept, (x, y1, x1, f1, jnp.minimum(count + 1, 2)), c["hist"])
-        if acceleration == "anderson":
-            jump = _anderson(x, y1, c["hist"], scale)
-            usable = jnp.all(jnp.isfinite(jump), axis=0) & jnp.all(jnp.abs(jump - y1) <= _MAX_JUMP * scale, axis=0)
-            extrapolate = accept & c["accelerate"] & ~stalled & c["plain"] & (count >= 1) & usable & (change > _MIN_CHANGE * rtol)
-        else:  # no extrapolation to compute per beat
-            jump, extrapolate = y1, jnp.zeros_like(accept)
-        new = {
-            "n": c["n"] + 1,
-            "y": _select(accept, y1, c["y"]),
-            "metrics": _select(accept, m, c["metrics"]),
-            "valid": jnp.where(accept, valid, c["valid"]),
-            "converged": jnp.where(accept, converged, c["converged"]),
-            "active": ((accept | dropped) & ~converged) if steady else accept,
-            "status": jnp.where(failed, jnp.where(finite, DIVERGED, NONFINITE), c["status"]),
-            "beats": c["beats"] + (accept | dropped).astype(jnp.int32),
-            "steps": c["steps"] + jnp.where(c["active"], trials, 0),
-            "start": jnp.where(extrapolate, jump, jnp.where(accept, y1, c["y"])),
-            "plain": ~extrapolate,
-            "accelerate": c["accelerate"] & ~dropped & ~(accept & stalled),
-            "change": jnp.where(accept & c["plain"], change, c["change"]),
-            "hist": hist,
-        }
-        if record:
-            new["traces"] = _select(accept, traces, c["traces"])
-        if scheme == "adaptive":
-            new["grid"] = _select(accept, grid, c["grid"])
-        return new
+def _advance(p: ModelParams, scale: jax.Array, c: dict, rtol, *, steps: int, steady: bool, record: bool, scheme: str, step_tol: float,
+             acceleration: str, volume_trace: bool) -> dict:
+    """One beat of every active member of the loop state ``c`` (:func:`_start_carry`): the new loop state."""
+    n_members = c["y"].shape[1]
+    x = c["start"]
+    if scheme == "adaptive":
+        y1, m, valid, trials, grid = beat_adaptive(p, x, step_tol, MAX_ADAPTIVE_STEPS, c["grid"], volume_trace)
+        traces = None
+    else:
+        y1, m, valid, traces = beat(p, x, steps, record, volume_trace)
+        trials = jnp.full(n_members, steps, jnp.int32)
+    finite = jnp.all(jnp.isfinite(y1), axis=0)
+    for key in SUMMARY_NAMES:  # the frames are NaN without volume_trace
+        finite &= jnp.isfinite(m[key])
+    v = y1[IDX_V]
+    in_range = (v > 0.0) & (v < _MAX_VOLUME_FACTOR * p.v0) & (jnp.abs(y1[IDX_PC]) < _MAX_PRESSURE) & (jnp.abs(m["P_lv_peak"]) < _MAX_PRESSURE)
+    ok = finite & in_range
+    dropped = c["active"] & ~ok & ~c["plain"]  # a failed extrapolation: back to the last plain end
+    accept = c["active"] & ok
+    failed = c["active"] & ~ok & c["plain"]
+    change = jnp.where((c["beats"] >= 1) & valid & c["valid"], _relative_change(m, c["metrics"]), jnp.inf)
+    converged = c["plain"] & (change < rtol)
+    stalled = c["plain"] & jnp.isfinite(c["change"]) & (change >= c["change"])  # a plain beat's change did not fall since the last one
+    x1, f1, x2, _, count = c["hist"]
+    hist = _select(accept, (x, y1, x1, f1, jnp.minimum(count + 1, 2)), c["hist"])
+    if acceleration == "anderson":
+        jump = _anderson(x, y1, c["hist"], scale)
+        usable = jnp.all(jnp.isfinite(jump), axis=0) & jnp.all(jnp.abs(jump - y1) <= _MAX_JUMP * scale, axis=0)
+        extrapolate = accept & c["accelerate"] & ~stalled & c["plain"] & (count >= 1) & usable & (change > _MIN_CHANGE * rtol)
+    else:  # no extrapolation to compute per beat
+        jump, extrapolate = y1, jnp.zeros_like(accept)
+    new = {
+        "y": _select(accept, y1, c["y"]),
+        "metrics": _select(accept, m, c["metrics"]),
+        "valid": jnp.where(accept, valid, c["valid"]),
+        "converged": jnp.where(accept, converged, c["converged"]),
+        "active": ((accept | dropped) & ~converged) if steady else accept,
+        "status": jnp.where(failed, jnp.where(finite, DIVERGED, NONFINITE), c["status"]),
+        "beats": c["beats"] + (accept | dropped).astype(jnp.int32),
+        "steps": c["steps"] + jnp.where(c["active"], trials, 0),
+        "start": jnp.where(extrapolate, jump, jnp.where(accept, y1, c["y"])),
+        "plain": ~extrapolate,
+        "accelerate": c["accelerate"] & ~dropped & ~(accept & stalled),
+        "change": jnp.where(accept & c["plain"], change, c["change"]),
+        "hist": hist,
+    }
+    if record:
+        new["traces"] = _select(accept, traces, c["traces"])
+    if scheme == "adaptive":
+        new["grid"] = _select(accept, grid, c["grid"])
+    return new
 
-    out = jax.lax.while_loop(cond, body, carry0)
+
+#: The loop state's fields that :func:`run_beats` returns (besides ``traces`` when recorded).
+_RESULT_FIELDS = ("y", "metrics", "valid", "converged", "status", "beats", "steps")
+
+
+def _finish(out: dict, steady: bool) -> dict:
+    """:func:`run_beats`'s result from its final loop state: status codes, NaN metrics where unusable."""
     m = out["metrics"]
     physical = (m["ESV"] > 0.0) & (m["EF"] <= 1.0) & (m["EF"] >= EF_MIN)
     status = jnp.where(out["status"] != OK, out["status"], jnp.where(
         ~out["valid"], NO_VALVE_CYCLE, jnp.where(~physical, NON_PHYSICAL, jnp.where(steady & ~out["converged"], NOT_CONVERGED, OK))))
-    out["metrics"] = {k: jnp.where(is_usable(status), v, jnp.nan) for k, v in m.items()}
-    out["status"] = status
-    for key in ("n", "active", "valid", "start", "plain", "change", "accelerate", "hist", "grid"):
-        out.pop(key, None)
-    return out
+    result = {k: out[k] for k in (*_RESULT_FIELDS, "traces") if k in out and k != "valid"}
+    result["metrics"] = {k: jnp.where(is_usable(status), v, jnp.nan) for k, v in m.items()}
+    result["status"] = status
+    return result
+
+
+def run_beats_queued(p: ModelParams, y0: jax.Array, rtol, *, lanes: int, max_beats: int, **settings):
+    """:func:`run_beats` to steady state (``steady=True``, no traces) with the members queued
+    through ``lanes`` lanes: the first ``lanes`` members start, and a lane whose member has
+    finished (converged, failed or out of beats) takes the next waiting member at once, with
+    its own fresh loop state. Lock-step blocks make every member of a block wait for the block's
+    slowest; here a lane waits only at the end of the queue. A member's computation is the same
+    elementwise sequence in any lane, so its result is bit-identical to :func:`run_beats`'s.
+    Same arguments (``max_beats`` counts each member's own beats) and result.
+    """
+    if not settings.get("steady") or settings.get("record"):
+        raise ValueError("queued lanes run to steady state without traces (steady=True, record=False)")
+    settings = {"scheme": "fixed", "step_tol": DEFAULT_STEP_TOL, "acceleration": "none", "volume_trace": True, **settings}
+    n_members = y0.shape[1]
+    lanes = min(lanes, n_members)
+    take = lambda tree, idx: jax.tree.map(lambda leaf: leaf[..., idx], tree)
+    first = jnp.arange(lanes)
+    lane0 = _start_carry(y0[:, :lanes], **settings)
+    done0 = _start_carry(y0, **settings)
+    carry0 = {"lane": {**lane0, "n": jnp.zeros((lanes,), jnp.int32), "member": first, "p": take(p, first)},
+              "next": jnp.asarray(lanes), "out": {k: done0[k] for k in _RESULT_FIELDS}}
+
+    def cond(c):
+        return jnp.any(c["lane"]["active"])
+
+    def body(c):
+        lane, member, lane_p = c["lane"], c["lane"]["member"], c["lane"]["p"]
+        state = {k: v for k, v in lane.items() if k not in ("n", "member", "p")}
+        state = _advance(lane_p, _state_scale(lane_p, y0.dtype), state, rtol, **settings)
+        n = lane["n"] + 1
+        state["active"] = state["active"] & (n < max_beats)
+        finished = ~state["active"] & (member < n_members)
+        put = jnp.where(finished, member, n_members)  # out of range: dropped
+        out = jax.tree.map(lambda o, v: o.at[..., put].set(v, mode="drop"), c["out"], {k: state[k] for k in _RESULT_FIELDS})
+        rank = jnp.cumsum(finished) - 1
+        incoming = jnp.where(finished, c["next"] + rank, n_members)
+        refill = incoming < n_members
+        source = jnp.minimum(incoming, n_members - 1)
+        fresh = _start_carry(y0[:, source], **settings)
+        state = _select(refill, fresh, state)
+        lane_p = _select(refill, take(p, source), lane_p)
+        member = jnp.where(refill, incoming, jnp.where(finished, n_members, member))
+        lane = {**state, "n": jnp.where(refill, 0, n), "member": member, "p": lane_p}
+        return {"lane": lane, "next": c["next"] + jnp.sum(finished), "out": out}
+
+    out = jax.lax.while_loop(cond, body, carry0)["out"]
+    return _finish(out, True)
 
 
 def run_beats_parallel(p: ModelParams, y0: jax.Array, rtol, **settings):
     """:func:`run_beats` laid out over a padded batch (:func:`lvenv.devices.layout`): each device
     runs its own loops on its members (``shard_map``: no device waits for another's beats or
     steps), and on the CPU in blocks of at most :data:`lvenv.devices.CPU_BLOCK` members, one block
-    after the other (``lax.map``), each with its own loops. A member's result does not depend on
-    its block or device. A batch whose size is not a padded size (e.g. one member under
+    after the other (``lax.map``), each with its own loops. The adaptive scheme to steady state
+    instead queues a device's members through one block's worth of lanes
+    (:func:`run_beats_queued`), so that no member waits for its block's slowest. (The fixed
+    scheme keeps the blocks: queued, its metrics differed from a lone run's in the last bits,
+    about 1e-15 relative, which would break bit-identity across batch sizes.) A member's result
+    does not depend on its block, lane or device. A batch whose size is not a padded size (e.g. one member under
     ``jax.vmap``) runs as one block. Same arguments and result as :func:`run_beats`.
     """
     n_members = y0.shape[-1]
@@ -394,6 +468,8 @@ def run_beats_parallel(p: ModelParams, y0: jax.Array, rtol, **settings):
     def local(p, y0, rtol):
         if blocks == 1:
             return run(p, y0, rtol)
+        if settings["steady"] and settings.get("scheme") == "adaptive":
+            return run_beats_queued(p, y0, rtol, lanes=block, **settings)
         split = lambda x: jnp.moveaxis(x.reshape(x.shape[:-1] + (blocks, block)), -2, 0)
         out = jax.lax.map(lambda args: run(*args, rtol), (jax.tree.map(split, p), split(y0)))
         return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -2).reshape(x.shape[1:-1] + (blocks * block,)), out)

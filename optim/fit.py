@@ -38,7 +38,7 @@ from optim.minimize import MinimizeResult, minimize
 
 __all__ = [
     "FitRow", "DEFAULT_OPTIONS", "make_env", "warm_up", "fit_patients", "plot_fits", "null_directions",
-    "synthetic_recovery", "RecoveryReport",
+    "synthetic_recovery", "RecoveryReport", "draw_truths",
 ]
 
 #: Per-method options used by `fit_patients` unless overridden (see `optim.minimize`).
@@ -229,7 +229,7 @@ class RecoveryReport:
     wall_time: float
 
 
-def _draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+def draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """Random parameter sets (log-uniform on log axes) whose hearts simulate cleanly with EF in
     [0.3, 0.75] and every plausibility band met (:mod:`lvenv.plausibility`, so an exact fit exists),
     simulated with the env's scheme (adaptive, Anderson-accelerated) that will fit them."""
@@ -269,7 +269,7 @@ def synthetic_recovery(
     start = time.perf_counter()
     base_patient = _patient(base)
     rng = np.random.default_rng(seed)
-    truths, obs = _draw_truths(n_sets, rng, base_patient, targets)
+    truths, obs = draw_truths(n_sets, rng, base_patient, targets)
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     fits, mismatch, max_error = [], [], []
     opts = {**DEFAULT_OPTIONS.get(method, {}), **options}

@@ -54,6 +54,8 @@ Sampler, in two stages:
    step of a vector env (:func:`optim.fit.make_env`), so the walkers run through the batched
    heart. It finds the posterior's region and shape, ridge included, but its walkers are not
    independent chains and move slowly along the ridge (split R-hat 1.05–1.27 after 800–2000 steps).
+   From a start far from the posterior's mass (a failed fit) the walkers are still climbing after
+   ``steps``; the pilot is then extended (:data:`CLIMB`).
 2. *Chains*: ``chains`` independent Metropolis–Hastings chains started at pilot draws, in
    ``rounds`` rounds. Each step is, with probability 0.8, an independence proposal from a
    Gaussian mixture fitted to the draws of the stage before (the pilot's for round 1, the
@@ -80,7 +82,9 @@ curves and the posterior pairs plot as PNG (``lvenv fit PATIENT --report DIR``).
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import inspect
 import json
 import pathlib
 from collections.abc import Mapping, Sequence
@@ -99,7 +103,7 @@ from lvenv.validation import InputError, integer
 from optim.cohort import CohortOptions, Report, fit_reports
 
 __all__ = ["NOISE", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
-           "probability_lower", "chi2", "write_report"]
+           "probability_lower", "chi2", "write_report", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
 
 #: Standard deviation of each target's measurement error, internal units (sources in the module
 #: docstring): EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included),
@@ -273,7 +277,8 @@ def profile(
 @dataclasses.dataclass(frozen=True)
 class Posterior:
     """Posterior samples by parameter name (physical units, burn-in removed, walkers × steps
-    flattened), their medians and 90 % credible intervals, and the diagnostics (module docstring)."""
+    flattened), their medians and 90 % credible intervals, and the diagnostics (module docstring).
+    ``pilot_steps``: the pilot's steps, more than ``steps`` where it was extended (:data:`CLIMB`)."""
 
     samples: dict[str, np.ndarray]
     median: dict[str, float]
@@ -284,6 +289,7 @@ class Posterior:
     rhat: dict[str, float]
     evaluations: int
     failed: int
+    pilot_steps: int
 
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if k != "samples"}
@@ -304,6 +310,21 @@ def _split_rhat(chains: np.ndarray) -> float:
     within = np.mean(np.var(split, axis=1, ddof=1))
     between = n * np.var(np.mean(split, axis=1), ddof=1)
     return float(np.sqrt(((n - 1) / n * within + between / n) / within)) if within > 0 else float("nan")
+
+
+#: Pilot burn-in check: while the median log-posterior of the pilot's last quarter of steps is
+#: more than :data:`CLIMB` above the quarter's before, the walkers are still climbing from the
+#: start (a start far from the posterior's mass), and the pilot runs ``steps`` more, at most
+#: :data:`PILOT_EXTENSIONS` times.
+CLIMB, PILOT_EXTENSIONS = 1.0, 3
+
+
+def _climbing(log_prob: np.ndarray) -> bool:
+    """Whether the walkers' log-posterior (steps, walkers) still rises (:data:`CLIMB`)."""
+    quarter = len(log_prob) // 4
+    before, last = log_prob[-2 * quarter:-quarter], log_prob[-quarter:]
+    median = lambda lp: np.median(lp[np.isfinite(lp)]) if np.isfinite(lp).any() else -np.inf
+    return bool(quarter >= 1 and median(last) > median(before) + CLIMB)
 
 
 #: Chain moves: the independence proposal's share, the defensive component's weight and
@@ -394,7 +415,9 @@ def posterior(
 
     Pilot: ``walkers`` × ``steps``, starting in a ball of radius ``spread`` (unit-cube units)
     around ``start`` (default: the patient's own values; a fit is better); ``burn``: its steps
-    dropped (default ``steps // 2``). ``moves``: the pilot's, ``"de"`` (default:
+    dropped (default ``steps // 2``). While the walkers' log-posterior still rises
+    (:data:`CLIMB`), the pilot runs ``steps`` more, at most :data:`PILOT_EXTENSIONS` times, and
+    drops the extra steps with the burn-in. ``moves``: the pilot's, ``"de"`` (default:
     differential-evolution moves, 80 % ``DEMove`` and 20 % ``DESnookerMove``, ter Braak & Vrugt
     2008) or any ``moves`` emcee takes (``None``: its stretch move). Then ``rounds`` rounds of
     ``chains`` independent chains × ``chain_steps``, ``chain_burn`` of each dropped (default
@@ -458,6 +481,12 @@ def posterior(
     sampler = emcee.EnsembleSampler(walkers, space.dimension, log_prob, vectorize=True, moves=moves)
     sampler.random_state = np.random.RandomState(seed).get_state()  # emcee's own generator, seeded
     sampler.run_mcmc(u0, steps, progress=False)
+    for _ in range(PILOT_EXTENSIONS):
+        if not _climbing(sampler.get_log_prob()):
+            break
+        sampler.run_mcmc(None, steps, progress=False)
+    pilot_steps = sampler.iteration
+    burn += pilot_steps - steps  # an extended pilot keeps as many steps as one of `steps`
     if chains:
         draws = sampler.get_chain(discard=burn, flat=True)[np.isfinite(sampler.get_log_prob(discard=burn, flat=True))]
         if len(draws) < 2 * space.dimension:
@@ -487,7 +516,30 @@ def posterior(
         rhat={n: _split_rhat(chain[..., j].T) for j, n in enumerate(space.names)},
         evaluations=counts["evaluations"],
         failed=counts["failed"],
+        pilot_steps=pilot_steps,
     )
+
+
+#: The sampler's size settings that scripts expose as options (``--chain-steps`` for
+#: ``chain_steps``), with their help; the defaults are :func:`posterior`'s own.
+SAMPLER_SETTINGS = {
+    "walkers": "the pilot ensemble's walkers",
+    "steps": "the pilot's steps",
+    "chains": "independent chains after the pilot (0: the pilot's walkers are the sample)",
+    "chain_steps": "steps of each chain in the last round",
+}
+
+
+def add_sampler_options(parser: argparse.ArgumentParser) -> None:
+    """Add :data:`SAMPLER_SETTINGS` to ``parser`` as integer options with :func:`posterior`'s defaults."""
+    defaults = inspect.signature(posterior).parameters
+    for name, text in SAMPLER_SETTINGS.items():
+        parser.add_argument("--" + name.replace("_", "-"), type=int, default=defaults[name].default, help=f"{text} (default %(default)s)")
+
+
+def sampler_options(args: argparse.Namespace) -> dict[str, int]:
+    """The :data:`SAMPLER_SETTINGS` of parsed ``args``, as keywords of :func:`posterior`."""
+    return {name: getattr(args, name) for name in SAMPLER_SETTINGS}
 
 
 def probability_lower(a: Posterior, b: Posterior, name: str) -> float:
@@ -505,6 +557,7 @@ def _bound_text(value: float | None, side: str) -> str:
 def write_report(
     patient: Patient,
     fit: Mapping[str, float],
+    observation: Mapping[str, float],
     out_dir: str | pathlib.Path,
     *,
     grid: int = 7,
@@ -512,7 +565,9 @@ def write_report(
     posterior_options: Mapping[str, Any] | None = None,
     noise: Mapping[str, float] = NOISE,
 ) -> pathlib.Path:
-    """Per-patient identifiability report at the fit ``fit`` (parameters by name, physical units).
+    """Per-patient identifiability report at the fit ``fit`` (parameters by name, physical units),
+    whose steady-state metrics are ``observation`` (by name, internal units: a fit result's
+    ``observation``; the report gives χ² at the fit from it).
 
     Writes to ``out_dir``: ``identifiability.md`` (targets and their σ, the fit, the sensitivity's
     singular values and null directions, each parameter's profile class and 95 % interval, the
@@ -540,7 +595,7 @@ def write_report(
              *(f"| {k} | {v:.4g} | {sigma[k]:.3g} |" for k, v in patient.targets.items()), "",
              "## Fit", "", "| parameter | value | units |", "|---|---|---|",
              *(f"| {n} | {fit[n]:.4g} | {ACTION_BOUNDS[n].units} |" for n in space.names), "",
-             f"χ² at the fit: {chi2(patient, _observe(patient, fit), noise):.3g}", "",
+             f"χ² at the fit: {chi2(patient, observation, noise):.3g}", "",
              "## Sensitivity at the fit", ""]
     sens = prof.sensitivity
     if sens is None:
@@ -573,8 +628,3 @@ def write_report(
                                                          indent=2, default=float))
     return path
 
-
-def _observe(patient: Patient, parameters: Mapping[str, float]) -> dict[str, float]:
-    """Steady-state metrics of ``patient``'s heart at ``parameters``."""
-    sim = lvenv.simulate(patient.heart.replace(**dict(parameters)), traces=False)
-    return {k: float(sim.metrics[k]) for k in patient.targets}

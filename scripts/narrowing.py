@@ -8,6 +8,8 @@ as targets, and samples the posterior (`optim.identify.posterior`, started at th
 measurement set below. Per set and parameter it prints the median over the truths of the 90 %
 interval width, as a fraction of the parameter's bound (log scale on log axes), and the ratio of
 the base set's width to it (×2 = twice as narrow). JSON with every width goes to ``--out``.
+About 2–3 minutes per posterior on 2 cores; each finished one is saved to ``--out`` with
+``.ckpt.npz`` appended, and a rerun with the same settings resumes from it.
 
 Measurement sets: the built-in patients' four targets (EF, ET, IVRT, pulse pressure), then with
 EDV and ESV, with an end-diastolic pressure estimate, with a 20-frame volume trace (cine MRI,
@@ -27,8 +29,9 @@ import numpy as np
 from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import Patient, builtin
-from optim.fit import _draw_truths
-from optim.identify import posterior
+from lvenv.archive import load_records, save_records
+from optim.fit import draw_truths
+from optim.identify import add_sampler_options, posterior, sampler_options
 
 BASE = ("EF", "ET", "IVRT", "P_ao_pulse")
 SETS = {
@@ -43,30 +46,34 @@ SETS = {
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--truths", type=int, default=3)
-    ap.add_argument("--walkers", type=int, default=64, help="the pilot ensemble's walkers")
-    ap.add_argument("--steps", type=int, default=200, help="the pilot's steps")
-    ap.add_argument("--chains", type=int, default=64, help="independent chains after the pilot (0: the pilot's walkers are the sample)")
-    ap.add_argument("--chain-steps", type=int, default=1200)
+    add_sampler_options(ap)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/identify/narrowing.json")
     a = ap.parse_args()
     base = builtin("normal")
     metrics = tuple(dict.fromkeys(m for names in SETS.values() for m in names))
-    truths, obs = _draw_truths(a.truths, np.random.default_rng(a.seed), base, metrics)
-    widths: dict[str, list[dict[str, float]]] = {name: [] for name in SETS}
-    runs = []
+    truths, obs = draw_truths(a.truths, np.random.default_rng(a.seed), base, metrics)
+    checkpoint = pathlib.Path(a.out + ".ckpt.npz")
+    settings = {k: v for k, v in vars(a).items() if k != "out"}
+    runs = load_records(checkpoint, settings)
+    if runs:
+        print(f"resuming after {len(runs)} posteriors from {checkpoint}", flush=True)
+    done = {(r["truth"], r["set"]) for r in runs}
     for i, (truth, o) in enumerate(zip(truths, obs)):
         values = dict(zip(metrics, map(float, o)))
         start = dict(zip(DEFAULT_ACTION_PARAMS, map(float, truth)))
         for name, targets in SETS.items():
+            if (i, name) in done:
+                continue
             patient = Patient(f"truth {i}", base.heart, {k: values[k] for k in targets})
             t0 = time.perf_counter()
-            post = posterior(patient, start=start, walkers=a.walkers, steps=a.steps, chains=a.chains, chain_steps=a.chain_steps, seed=a.seed + i)
-            widths[name].append(post.widths())
+            post = posterior(patient, start=start, seed=a.seed + i, **sampler_options(a))
             runs.append({"truth": i, "set": name, "parameters": start, "widths": post.widths(), "rhat": post.rhat,
                          "acceptance": post.acceptance, "failed": post.failed, "wall_s": time.perf_counter() - t0})
+            save_records(checkpoint, runs, settings)
             print(f"truth {i} {name:15s} widths " + " ".join(f"{n} {w:.3f}" for n, w in post.widths().items())
-                  + f"  (R-hat ≤ {max(post.rhat.values()):.2f}, {time.perf_counter() - t0:.0f} s)", flush=True)
+                  + f"  (R-hat ≤ {max(post.rhat.values()):.3f}, {time.perf_counter() - t0:.0f} s)", flush=True)
+    widths = {name: [r["widths"] for r in runs if r["set"] == name] for name in SETS}
     median = {name: {n: float(np.median([w[n] for w in ws])) for n in DEFAULT_ACTION_PARAMS} for name, ws in widths.items()}
     first = median["4 targets"]
     print(f"\nmedian 90 % interval width over {a.truths} truths (fraction of the bound; × = narrowing against the four targets)")
@@ -77,6 +84,7 @@ def main() -> None:
     out = pathlib.Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"median": median, "runs": runs, "options": vars(a)}, indent=2))
+    checkpoint.unlink()
     print(f"JSON: {out}")
 
 

@@ -39,6 +39,32 @@ def test_a_member_is_bit_identical_in_batches_of_any_size(scheme):
         np.testing.assert_array_equal(values, reference, err_msg=f"batch of {n}")
 
 
+def test_queued_members_are_bit_identical_to_a_lone_run():
+    """The adaptive scheme to steady state queues a device's members through CPU_BLOCK lanes
+    (lvenv.simulation.run_beats_queued): members finish after different numbers of beats, lanes
+    take the next member when theirs finishes, and every member (converged, out of beats or
+    failed) still gets exactly the bits, beats and steps of a run on its own."""
+    rng = np.random.default_rng(3)
+    base = presets.normal()
+    hearts = [base.replace(tau2=float(t), Sa=float(a), R3=float(r), C=float(c)) for t, a, r, c in
+              zip(rng.uniform(0.1, 0.4, 300), rng.uniform(0.6, 1.6, 300), rng.uniform(0.08, 0.3, 300), rng.uniform(3.0, 25.0, 300))]
+    y0 = np.stack([lvenv.simulate(h, beats=1, steps_per_beat=200, traces=False).final_state for h in hearts[:2]])
+    y_bad = np.repeat(y0[:1], len(hearts), axis=0)
+    y_bad[:2] = y0
+    y_bad[150, 6] = np.nan  # one member fails at once, and its lane is refilled
+    assert devices.layout(len(hearts))[1] > 1, "several blocks per device: the queue is used"
+    settings = dict(scheme="adaptive", acceleration="anderson", traces=False, max_beats=5)
+    batch = lvenv.simulate(hearts, initial_state=y_bad, **settings)
+    assert len(set(batch.beats.tolist())) >= 3 and batch.status[150] == "nonfinite"
+    assert {"ok", "not_converged"} <= set(batch.status.tolist()), "some members ran out of beats"
+    for i in (0, 1, 63, 64, 150, 151, 298, 299) + tuple(rng.choice(300, 6, replace=False)):
+        lone = lvenv.simulate([hearts[i]], initial_state=y_bad[i:i + 1], **settings)
+        assert (batch.status[i], batch.beats[i], batch.steps[i]) == (lone.status[0], lone.beats[0], lone.steps[0]), f"member {i}"
+        np.testing.assert_array_equal(batch.final_state[i], lone.final_state[0], err_msg=f"member {i}")
+        for key in batch.metrics:
+            np.testing.assert_array_equal(batch.metrics[key][i], lone.metrics[key][0], err_msg=f"member {i}, {key}")
+
+
 def test_stacked_pytree_equals_sequence_and_geometry_may_differ():
     hearts = cohort()
     a = lvenv.simulate(hearts, beats=2)

@@ -75,10 +75,11 @@ def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the
     kwargs = dict(walkers=16, steps=30, burn=10, chains=8, chain_steps=40, chain_burn=8, steps_per_beat=STEPS, max_beats=30, seed=3)
     flat, sharp = posterior(patient, noise=wide, **kwargs), posterior(patient, noise=narrow, **kwargs)
     pilot = posterior(patient, noise=narrow, **{**kwargs, "chains": 0})
-    for post, evaluations, draws in ((flat, 16 * 31 + 8 * (11 + 41), 32 * 8), (sharp, 16 * 31 + 8 * (11 + 41), 32 * 8), (pilot, 16 * 31, 20 * 16)):
+    for post, chained, draws in ((flat, True, 32 * 8), (sharp, True, 32 * 8), (pilot, False, 20 * 16)):
         # each sampler evaluates its starting points once, then one proposal per walker (chain) and step;
-        # the chains' first round runs chain_steps // 4 steps
-        assert post.evaluations == evaluations
+        # the chains' first round runs chain_steps // 4 steps; an extended pilot runs steps more each time
+        assert post.pilot_steps in (30, 60, 90, 120)
+        assert post.evaluations == 16 * (1 + post.pilot_steps) + chained * 8 * (11 + 41)
         assert 0.0 <= post.acceptance <= 1.0 and 0 <= post.failed <= post.evaluations
         for name, values in post.samples.items():
             bound = ACTION_BOUNDS[name]
@@ -94,6 +95,20 @@ def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the
         expected = np.log(hi / lo) / np.log(bound.hi / bound.lo) if bound.log else (hi - lo) / (bound.hi - bound.lo)
         assert width == pytest.approx(expected, rel=1e-9) and 0.0 <= width <= 1.0, name
     assert flat.widths()["tau2"] > sharp.widths()["tau2"]
+
+
+def test_pilot_is_extended_while_its_walkers_still_climb():
+    from optim.identify import CLIMB, _climbing
+
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0.0, 3.0, (200, 64))  # an equilibrium's spread of log-posteriors, far wider than CLIMB
+    assert not _climbing(noise - 50.0)
+    assert _climbing(noise - 50.0 + np.linspace(0.0, 8 * CLIMB, 200)[:, None]), "a rise of 2 CLIMB per quarter"
+    assert not _climbing(noise - 50.0 + np.linspace(0.0, 2 * CLIMB, 200)[:, None]), "half a CLIMB per quarter: settled enough"
+    stuck = np.full((200, 64), -np.inf)
+    stuck[150:, :8] = -40.0
+    assert _climbing(stuck), "walkers only now finding usable hearts"
+    assert not _climbing(np.full((200, 64), -np.inf))
 
 
 def _ridge_log_density(u: np.ndarray) -> np.ndarray:
@@ -172,7 +187,8 @@ def test_identifiability_report_holds_every_parameter_its_figures_and_the_number
     fit = {n: float(patient.heart.get(n)) for n in ACTION_BOUNDS}
     options = CohortOptions(candidates=8, budget=16, stop_mismatch=0.0, slots=32)
     small = dict(walkers=16, steps=10, burn=4, chains=8, chain_steps=16, chain_burn=4, steps_per_beat=STEPS, max_beats=30)
-    path = write_report(patient, fit, tmp_path, grid=3, options=options, posterior_options=small)
+    off = {k: 1.1 * v for k, v in patient.targets.items()}  # each target 10 % off: χ² at the fit is known
+    path = write_report(patient, fit, off, tmp_path, grid=3, options=options, posterior_options=small)
     text = path.read_text()
     record = json.loads((tmp_path / "identifiability.json").read_text())
     for image in ("profiles.png", "posterior_pairs.png"):
@@ -185,4 +201,5 @@ def test_identifiability_report_holds_every_parameter_its_figures_and_the_number
         median = record["posterior"]["median"][name]
         assert f"| {name} | {median:.4g} |" in text, "the posterior table shows the JSON's median"
     assert record["fit"] == fit and set(record["targets"]) == set(patient.targets)
+    assert f"χ² at the fit: {chi2(patient, off):.3g}" in text, "χ² is of the observation passed in"
     assert len(record["sensitivity"]["null_directions"]) == 2, "four targets, six parameters"
