@@ -304,19 +304,22 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
     return _finish(jax.lax.while_loop(cond, body, carry0), steady)
 
 
+def _result_start(y0: jax.Array) -> dict:
+    """The loop state's fields that :func:`run_beats` returns (through :func:`_finish`), before
+    the first beat of members starting at ``y0`` (9, B)."""
+    n_members = y0.shape[1]
+    zeros = jnp.zeros((n_members,), y0.dtype)
+    count = jnp.zeros((n_members,), jnp.int32)
+    return {"y": y0, "metrics": {k: zeros for k in METRIC_NAMES}, "valid": jnp.zeros((n_members,), bool),
+            "converged": jnp.zeros((n_members,), bool), "status": count, "beats": count, "steps": count}
+
+
 def _start_carry(y0: jax.Array, *, steps: int, steady: bool, record: bool, scheme: str, acceleration: str, **_) -> dict:
     """Loop state of :func:`run_beats` for members starting at ``y0`` (9, B)."""
     n_members = y0.shape[1]
-    zeros = jnp.zeros((n_members,), y0.dtype)
     carry = {
-        "y": y0,
-        "metrics": {k: zeros for k in METRIC_NAMES},
-        "valid": jnp.zeros((n_members,), bool),
-        "converged": jnp.zeros((n_members,), bool),
+        **_result_start(y0),
         "active": jnp.ones((n_members,), bool),
-        "status": jnp.zeros((n_members,), jnp.int32),
-        "beats": jnp.zeros((n_members,), jnp.int32),
-        "steps": jnp.zeros((n_members,), jnp.int32),
         "start": y0,
         "plain": jnp.ones((n_members,), bool),
         "change": jnp.full((n_members,), jnp.inf, y0.dtype),
@@ -383,20 +386,14 @@ def _advance(p: ModelParams, scale: jax.Array, c: dict, rtol, *, steps: int, ste
     return new
 
 
-#: The loop state's fields that :func:`run_beats` returns (besides ``traces`` when recorded).
-_RESULT_FIELDS = ("y", "metrics", "valid", "converged", "status", "beats", "steps")
-
-
 def _finish(out: dict, steady: bool) -> dict:
     """:func:`run_beats`'s result from its final loop state: status codes, NaN metrics where unusable."""
     m = out["metrics"]
     physical = (m["ESV"] > 0.0) & (m["EF"] <= 1.0) & (m["EF"] >= EF_MIN)
     status = jnp.where(out["status"] != OK, out["status"], jnp.where(
         ~out["valid"], NO_VALVE_CYCLE, jnp.where(~physical, NON_PHYSICAL, jnp.where(steady & ~out["converged"], NOT_CONVERGED, OK))))
-    result = {k: out[k] for k in (*_RESULT_FIELDS, "traces") if k in out and k != "valid"}
-    result["metrics"] = {k: jnp.where(is_usable(status), v, jnp.nan) for k, v in m.items()}
-    result["status"] = status
-    return result
+    result = {k: out[k] for k in ("y", "converged", "beats", "steps", "traces") if k in out}
+    return {**result, "metrics": {k: jnp.where(is_usable(status), v, jnp.nan) for k, v in m.items()}, "status": status}
 
 
 def run_beats_queued(p: ModelParams, y0: jax.Array, rtol, *, lanes: int, max_beats: int, **settings):
@@ -416,9 +413,8 @@ def run_beats_queued(p: ModelParams, y0: jax.Array, rtol, *, lanes: int, max_bea
     take = lambda tree, idx: jax.tree.map(lambda leaf: leaf[..., idx], tree)
     first = jnp.arange(lanes)
     lane0 = _start_carry(y0[:, :lanes], **settings)
-    done0 = _start_carry(y0, **settings)
     carry0 = {"lane": {**lane0, "n": jnp.zeros((lanes,), jnp.int32), "member": first, "p": take(p, first)},
-              "next": jnp.asarray(lanes), "out": {k: done0[k] for k in _RESULT_FIELDS}}
+              "next": jnp.asarray(lanes), "out": _result_start(y0)}
 
     def cond(c):
         return jnp.any(c["lane"]["active"])
@@ -431,7 +427,7 @@ def run_beats_queued(p: ModelParams, y0: jax.Array, rtol, *, lanes: int, max_bea
         state["active"] = state["active"] & (n < max_beats)
         finished = ~state["active"] & (member < n_members)
         put = jnp.where(finished, member, n_members)  # out of range: dropped
-        out = jax.tree.map(lambda o, v: o.at[..., put].set(v, mode="drop"), c["out"], {k: state[k] for k in _RESULT_FIELDS})
+        out = jax.tree.map(lambda o, v: o.at[..., put].set(v, mode="drop"), c["out"], {k: state[k] for k in c["out"]})
         rank = jnp.cumsum(finished) - 1
         incoming = jnp.where(finished, c["next"] + rank, n_members)
         refill = incoming < n_members

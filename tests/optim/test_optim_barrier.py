@@ -82,14 +82,20 @@ def test_progressive_barrier_solves_constrained_problems(problem, solution) -> N
 
 
 def test_barrier_reduces_to_plain_mads_without_violations() -> None:
+    """Without violations the barrier is plain MADS evaluating each iteration whole (it does
+    not split polls into chunks: with them it stopped short of both problems above)."""
+
     def sphere(x: np.ndarray) -> np.ndarray:
         return np.sum((x - 0.4) ** 2, axis=1)
 
+    whole = {"n_candidates": 64, "poll_chunk": None, "search_first": False}
     runs = [
-        optim.run(optim.Mads(BOUNDS, 6, seed=2, options=MadsOptions(constraint=c, n_candidates=64)), sphere, 120)
+        optim.run(optim.Mads(BOUNDS, 6, seed=2, options=MadsOptions(constraint=c, **whole)), sphere, 120)  # type: ignore[arg-type]
         for c in ("penalty", "progressive_barrier")
     ]
     np.testing.assert_array_equal(runs[0].history.x, runs[1].history.x)
+    barrier = optim.run(optim.Mads(BOUNDS, 6, seed=2, options=MadsOptions(constraint="progressive_barrier", n_candidates=64)), sphere, 120)
+    np.testing.assert_array_equal(barrier.history.x, runs[1].history.x)  # the chunk options do not apply
 
 
 def test_unknown_constraint_mode() -> None:

@@ -111,21 +111,35 @@ def test_bound_constrained_problem_converges_to_the_active_bounds() -> None:
     assert np.all(res.history.x >= lower) and np.all(res.history.x <= upper)  # extreme barrier
 
 
+def shifted_sphere(x: np.ndarray) -> np.ndarray:
+    return np.sum((x - 0.123) ** 2, axis=1)
+
+
 def test_whole_poll_set_is_one_batch_and_opportunism_saves_batches() -> None:
-    """With batch >= 2n + n_search every iteration is one batch; with small batches the
-    opportunistic strategy stops polling after an improving chunk."""
-
-    def sphere(x: np.ndarray) -> np.ndarray:
-        return np.sum((x - 0.123) ** 2, axis=1)
-
+    """Without poll chunks and with batch >= 2n + n_search every iteration is one batch; with
+    small batches the opportunistic strategy stops polling after an improving chunk."""
     bounds = Bounds(np.zeros(3), np.ones(3))
-    res = run_mads(sphere, bounds, 300, 8, kriging_search=False, initial_design=False)
+    res = run_mads(shifted_sphere, bounds, 300, 8, kriging_search=False, initial_design=False, poll_chunk=None)
     assert res.batches <= res.info["iterations"] + 1  # + the batch holding x0
     assert np.bincount(res.history.batch).max() == 6  # a whole poll set in one batch
-    greedy = run_mads(sphere, bounds, 300, 2, kriging_search=False, min_poll_size=1e-3)
-    full = run_mads(sphere, bounds, 300, 2, kriging_search=False, opportunistic=False, min_poll_size=1e-3)
+    greedy = run_mads(shifted_sphere, bounds, 300, 2, kriging_search=False, min_poll_size=1e-3)
+    full = run_mads(shifted_sphere, bounds, 300, 2, kriging_search=False, opportunistic=False, min_poll_size=1e-3)
     per_iteration = [r.evaluations / r.info["iterations"] for r in (greedy, full)]
     assert per_iteration[0] < per_iteration[1]
+
+
+def test_search_first_and_poll_chunks_end_an_iteration_at_its_first_success() -> None:
+    """The search point goes alone, the poll in chunks of poll_chunk; an improving chunk ends
+    the iteration, so an iteration costs fewer evaluations than the whole trial list."""
+    bounds = Bounds(np.zeros(3), np.ones(3))
+    chunked = run_mads(shifted_sphere, bounds, 300, 8, poll_chunk=2, refit_every=3, n_candidates=128)
+    whole = run_mads(shifted_sphere, bounds, 300, 8, poll_chunk=None, search_first=False, refit_every=3, n_candidates=128)
+    sizes = np.bincount(chunked.history.batch)
+    assert sizes.max() <= 2 and np.bincount(whole.history.batch).max() == 7  # search point + 2n poll points
+    assert np.sum(sizes[1:] == 1) >= chunked.info["iterations"] // 2  # search points went alone
+    per_iteration = [r.evaluations / r.info["iterations"] for r in (chunked, whole)]
+    assert per_iteration[0] < 0.75 * per_iteration[1]
+    np.testing.assert_allclose(chunked.x_best, 0.123, atol=1e-3)
 
 
 def test_bad_options() -> None:
@@ -138,3 +152,6 @@ def test_bad_options() -> None:
         optim.Mads(b, 2, options=MadsOptions(gp_points=3))
     with pytest.raises(ValueError, match="refit_every"):
         optim.Mads(b, 2, options=MadsOptions(refit_every=0))
+    for chunk in (0, 2.5, True):
+        with pytest.raises(ValueError, match=f"poll_chunk must be None or an integer >= 1, got {chunk!r}"):
+            optim.Mads(b, 2, options=MadsOptions(poll_chunk=chunk))  # type: ignore[arg-type]
