@@ -165,7 +165,8 @@ class MadsOptions:
     points. Default 1 (the minimiser alone): on the built-in patients, EI points filling the
     batch cost 1.7–2× the evaluations to 3 % (`scripts/bench_optim.py`).
     None fills the batch: max(2, batch_size - n_poll) with n_poll = 2n (+ 2 secondary poll
-    points under the barrier). With batch_size >= n_poll + n_search an iteration is one step.
+    points under the barrier). With batch_size >= n_poll + n_search, ``poll_chunk=None`` and
+    ``search_first=False`` an iteration is one step.
     gp_points: the GP is fitted to at most this many evaluated points nearest the incumbent.
     refit_every: GP hyperparameters are re-estimated every this many iterations and kept fixed
     (warm start) in between.
