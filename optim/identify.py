@@ -70,7 +70,15 @@ Sampler, in two stages:
    refitted, with τ ≈ 2–3 and R-hat ≤ 1.03 after 300 kept steps. From a wrong pilot (a narrow
    Gaussian off the ridge) two rounds had not mixed, and R-hat (1.28) said so; four had.
 
-This is the issue's fallback sampler; a gradient-based NUTS is not built (see README).
+With ``sampler="nuts"``, stage 2 is NUTS chains with gradients through the heart
+(:mod:`optim.nuts`, BlackJAX) instead: the gradient-based sampler. The log-posterior of the
+fixed-step heart is not continuous at the integrator's grid scale: along a line through the N
+preset, IVRT is a sawtooth with jumps of about half a step (≈ 0.45 ms at 1000 steps per beat),
+and log p jumps by about 0.6 / 0.15 at 500 / 1000 steps per beat. Step-size adaptation then
+settles at 0.016 (500 steps) against 0.1–0.3 (2000 steps, the default
+``gradient_steps_per_beat``) in whitened units, and each leapfrog step of all chains is a
+steady state plus 15 tangents (README for the cost). The ensemble chains stay the default.
+
 Diagnostics (of the chains; of the pilot's walkers when ``chains=0``): acceptance fraction,
 emcee's integrated autocorrelation time τ per parameter and the effective sample size (chains ×
 kept steps / τ), and the split R-hat of Gelman et al. (BDA3, §11.4), largest over parameters
@@ -103,7 +111,7 @@ from lvenv.validation import InputError, integer
 from optim.cohort import CohortOptions, Report, fit_reports
 
 __all__ = ["NOISE", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
-           "probability_lower", "chi2", "write_report", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
+           "probability_lower", "chi2", "write_report", "SAMPLERS", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
 
 #: Standard deviation of each target's measurement error, internal units (sources in the module
 #: docstring): EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included),
@@ -290,6 +298,8 @@ class Posterior:
     evaluations: int
     failed: int
     pilot_steps: int
+    sampler: str = "ensemble"
+    divergent: int = 0  # NUTS transitions that diverged (0 for the ensemble)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if k != "samples"}
@@ -311,6 +321,9 @@ def _split_rhat(chains: np.ndarray) -> float:
     between = n * np.var(np.mean(split, axis=1), ddof=1)
     return float(np.sqrt(((n - 1) / n * within + between / n) / within)) if within > 0 else float("nan")
 
+
+#: What samples after the pilot: :func:`posterior`'s ``sampler``.
+SAMPLERS = ("ensemble", "nuts")
 
 #: Pilot burn-in check: while the median log-posterior of the pilot's last quarter of steps is
 #: more than :data:`CLIMB` above the quarter's before, the walkers are still climbing from the
@@ -410,6 +423,9 @@ def posterior(
     max_beats: int = 60,
     moves: Any = "de",
     plausibility: bool | Sequence[Band] = True,
+    sampler: str = "ensemble",
+    gradient_steps_per_beat: int = 2000,
+    max_doublings: int = 5,
 ) -> Posterior:
     """Sample the posterior of :data:`DEFAULT_ACTION_PARAMS` for ``patient`` (module docstring).
 
@@ -428,6 +444,14 @@ def posterior(
     (emcee proposes half the ensemble at a time); the chains go through it in blocks of that
     size. ``plausibility``: the filling-pressure bands in the prior factor (module docstring;
     :func:`lvenv.plausibility.resolve`).
+
+    ``sampler="nuts"``: after the pilot, ``chains`` NUTS chains (:mod:`optim.nuts`, BlackJAX)
+    start at pilot draws, in logit coordinates whitened by the pilot's mean and covariance, with
+    gradients through the heart at ``gradient_steps_per_beat`` fixed steps per beat and trees of
+    at most 2^``max_doublings`` leapfrog steps: ``chain_burn`` warmup iterations (default
+    ``chain_steps // 2``) adapt each chain's step size and are dropped, ``chain_steps`` are kept;
+    ``rounds`` does not apply. It costs far more per effective draw than the ensemble on a CPU
+    (module docstring), so the ensemble is the default.
     """
     import emcee
 
@@ -441,8 +465,17 @@ def posterior(
     if 0 < chains < 4:
         raise InputError(f"chains = {chains}: give 0 (the pilot's walkers are the sample) or at least 4 (split R-hat compares chains)")
     chain_steps = integer("chain_steps", chain_steps, 2)
-    chain_burn = chain_steps // 8 if chain_burn is None else integer("chain_burn", chain_burn, 0, chain_steps - 2)
+    if sampler not in SAMPLERS:
+        raise InputError(f"sampler = {sampler!r}; choose from {SAMPLERS}")
+    if sampler == "nuts":
+        chain_burn = chain_steps // 2 if chain_burn is None else integer("chain_burn", chain_burn, 0)
+    else:
+        chain_burn = chain_steps // 8 if chain_burn is None else integer("chain_burn", chain_burn, 0, chain_steps - 2)
     rounds = integer("rounds", rounds, 1)
+    if sampler == "nuts" and not chains:
+        raise InputError("sampler = 'nuts' needs chains >= 4 (the NUTS chains after the pilot)")
+    gradient_steps_per_beat = integer("gradient_steps_per_beat", gradient_steps_per_beat, 50)
+    max_doublings = integer("max_doublings", max_doublings, 1, 10)
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     sigma = _sigma(patient, noise)
     targets = np.array(list(patient.targets.values()))
@@ -478,45 +511,66 @@ def posterior(
     u0 = np.clip(centre + spread * rng.standard_normal((walkers, space.dimension)), 1e-6, 1 - 1e-6)
     if moves == "de":
         moves = [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
-    sampler = emcee.EnsembleSampler(walkers, space.dimension, log_prob, vectorize=True, moves=moves)
-    sampler.random_state = np.random.RandomState(seed).get_state()  # emcee's own generator, seeded
-    sampler.run_mcmc(u0, steps, progress=False)
+    ensemble = emcee.EnsembleSampler(walkers, space.dimension, log_prob, vectorize=True, moves=moves)
+    ensemble.random_state = np.random.RandomState(seed).get_state()  # emcee's own generator, seeded
+    ensemble.run_mcmc(u0, steps, progress=False)
     for _ in range(PILOT_EXTENSIONS):
-        if not _climbing(sampler.get_log_prob()):
+        if not _climbing(ensemble.get_log_prob()):
             break
-        sampler.run_mcmc(None, steps, progress=False)
-    pilot_steps = sampler.iteration
+        ensemble.run_mcmc(None, steps, progress=False)
+    pilot_steps = ensemble.iteration
     burn += pilot_steps - steps  # an extended pilot keeps as many steps as one of `steps`
+    divergent = 0
     if chains:
-        draws = sampler.get_chain(discard=burn, flat=True)[np.isfinite(sampler.get_log_prob(discard=burn, flat=True))]
+        draws = ensemble.get_chain(discard=burn, flat=True)[np.isfinite(ensemble.get_log_prob(discard=burn, flat=True))]
         if len(draws) < 2 * space.dimension:
             raise RuntimeError(f"only {len(draws)} of the pilot's draws had a usable simulation; start nearer a fit (start=) or run a longer pilot")
         position = draws[rng.choice(len(draws), size=chains, replace=len(draws) < chains)]
-        for r in range(rounds):
-            last = r == rounds - 1
-            sampler = emcee.EnsembleSampler(chains, space.dimension, log_prob, vectorize=True, moves=_chain_moves(draws, seed + r))
-            sampler.random_state = np.random.RandomState(seed + 1 + r).get_state()
-            n = chain_steps if last else max(2, chain_steps // 4)
-            sampler.run_mcmc(position, n, progress=False, skip_initial_state_check=True)  # chains need no spread
-            draws, position = sampler.get_chain(discard=n // 2, flat=True), sampler.get_last_sample().coords
-        burn = chain_burn
-    venv.close()
-    chain = sampler.get_chain(discard=burn)  # (kept steps, walkers or chains, k), unit cube
+    if sampler == "nuts":
+        venv.close()
+        from optim.nuts import LogDensity, run_nuts
+
+        z = _logit(draws)
+        mean, chol = z.mean(axis=0), np.linalg.cholesky(np.cov(z, rowvar=False) + 1e-9 * np.eye(space.dimension))
+        density = LogDensity(patient, space, sigma, bands, PLAUSIBILITY_SD, mean, chol, gradient_steps_per_beat, max_beats)
+        run = run_nuts(density, np.linalg.solve(chol, (_logit(position) - mean).T).T, warmup=chain_burn, draws=chain_steps, seed=seed,
+                       max_doublings=max_doublings)
+        chain = density.unit(run["positions"])
+        tau = emcee.autocorr.integrated_time(chain, quiet=True)
+        acceptance = float(np.mean(run["acceptance"][chain_burn:]))
+        counts["evaluations"] += density.evaluations
+        counts["failed"] += density.failed
+        divergent = int(np.sum(run["divergent"]))
+    else:
+        if chains:
+            for r in range(rounds):
+                last = r == rounds - 1
+                ensemble = emcee.EnsembleSampler(chains, space.dimension, log_prob, vectorize=True, moves=_chain_moves(draws, seed + r))
+                ensemble.random_state = np.random.RandomState(seed + 1 + r).get_state()
+                n = chain_steps if last else max(2, chain_steps // 4)
+                ensemble.run_mcmc(position, n, progress=False, skip_initial_state_check=True)  # chains need no spread
+                draws, position = ensemble.get_chain(discard=n // 2, flat=True), ensemble.get_last_sample().coords
+            burn = chain_burn
+        venv.close()
+        chain = ensemble.get_chain(discard=burn)  # (kept steps, walkers or chains, k), unit cube
+        tau = ensemble.get_autocorr_time(discard=burn, quiet=True)
+        acceptance = float(np.mean(ensemble.acceptance_fraction))
     physical = space.from_unit(chain)
-    tau = sampler.get_autocorr_time(discard=burn, quiet=True)
     kept = chain.shape[0] * chain.shape[1]
     samples = {n: physical[..., j].T.reshape(-1) for j, n in enumerate(space.names)}
     return Posterior(
         samples=samples,
         median={n: float(np.median(v)) for n, v in samples.items()},
         interval_90={n: (float(np.percentile(v, 5)), float(np.percentile(v, 95))) for n, v in samples.items()},
-        acceptance=float(np.mean(sampler.acceptance_fraction)),
+        acceptance=acceptance,
         autocorr_time={n: float(t) for n, t in zip(space.names, tau)},
         ess={n: float(kept / t) for n, t in zip(space.names, tau)},
         rhat={n: _split_rhat(chain[..., j].T) for j, n in enumerate(space.names)},
         evaluations=counts["evaluations"],
         failed=counts["failed"],
         pilot_steps=pilot_steps,
+        sampler=sampler,
+        divergent=divergent,
     )
 
 
@@ -526,20 +580,23 @@ SAMPLER_SETTINGS = {
     "walkers": "the pilot ensemble's walkers",
     "steps": "the pilot's steps",
     "chains": "independent chains after the pilot (0: the pilot's walkers are the sample)",
-    "chain_steps": "steps of each chain in the last round",
+    "chain_steps": "steps of each chain in the last round (NUTS: kept iterations of each chain)",
 }
 
 
 def add_sampler_options(parser: argparse.ArgumentParser) -> None:
-    """Add :data:`SAMPLER_SETTINGS` to ``parser`` as integer options with :func:`posterior`'s defaults."""
+    """Add ``--sampler`` (:data:`SAMPLERS`) and :data:`SAMPLER_SETTINGS` to ``parser``, the
+    latter as integer options, all with :func:`posterior`'s defaults."""
     defaults = inspect.signature(posterior).parameters
+    parser.add_argument("--sampler", choices=SAMPLERS, default=defaults["sampler"].default,
+                        help="what samples after the pilot: independent MH chains or NUTS through the heart (default %(default)s)")
     for name, text in SAMPLER_SETTINGS.items():
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=defaults[name].default, help=f"{text} (default %(default)s)")
 
 
-def sampler_options(args: argparse.Namespace) -> dict[str, int]:
-    """The :data:`SAMPLER_SETTINGS` of parsed ``args``, as keywords of :func:`posterior`."""
-    return {name: getattr(args, name) for name in SAMPLER_SETTINGS}
+def sampler_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``sampler`` and the :data:`SAMPLER_SETTINGS` of parsed ``args``, as keywords of :func:`posterior`."""
+    return {"sampler": args.sampler, **{name: getattr(args, name) for name in SAMPLER_SETTINGS}}
 
 
 def probability_lower(a: Posterior, b: Posterior, name: str) -> float:

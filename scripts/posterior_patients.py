@@ -1,10 +1,10 @@
 """Posteriors of the two built-in patients (issue 11 item 5): fit, sample, compare.
 
-    python scripts/posterior_patients.py [--out out/identify] [--seed 0]
+    python scripts/posterior_patients.py [--out out/identify] [--seed 0] [--sampler nuts] [--chains N] ...
 
 Per built-in patient: a least-squares fit (`optim.lm.fit_lm`, budget 120, 4 starts), then the
-posterior started at the fit (`optim.identify.posterior` with its defaults: a differential-
-evolution pilot, then independent Metropolis–Hastings chains). Printed as JSON: the fit, the
+posterior started at the fit (`optim.identify.posterior`, by default a differential-evolution
+pilot, then independent Metropolis–Hastings chains; the sampler options change that). Printed as JSON: the fit, the
 medians and 90 % credible intervals, the diagnostics (acceptance, τ, ESS, split R-hat), the
 sampling wall time, and P(Sa_HF < Sa_N) and P(τ2_HF > τ2_N). The posterior pairs plot of both
 patients goes to ``<out>/posterior_pairs.png`` and the JSON to ``<out>/posterior_patients.json``.
@@ -20,7 +20,7 @@ import time
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.patients import builtin
 from lvenv.plots import pairs_figure
-from optim.identify import posterior, probability_lower
+from optim.identify import add_sampler_options, posterior, probability_lower, sampler_options
 from optim.lm import fit_lm
 
 PATIENTS = ("normal", "heart_failure")
@@ -30,6 +30,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/identify"))
     ap.add_argument("--seed", type=int, default=0)
+    add_sampler_options(ap)
     a = ap.parse_args()
     summary, posts = {}, {}
     for name in PATIENTS:
@@ -38,7 +39,7 @@ def main() -> None:
         fit = fit_lm(patient, budget=120, starts=4, seed=a.seed)
         t_fit = time.perf_counter() - t0
         t0 = time.perf_counter()
-        post = posts[name] = posterior(patient, start=fit.parameters, seed=a.seed)
+        post = posts[name] = posterior(patient, start=fit.parameters, seed=a.seed, **sampler_options(a))
         t_post = time.perf_counter() - t0
         summary[name] = {"fit": {"parameters": fit.parameters, "mismatch": fit.mismatch, "wall_s": t_fit},
                          "posterior": {**post.to_dict(), "wall_s": t_post}}
