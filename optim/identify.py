@@ -75,7 +75,7 @@ With ``sampler="nuts"``, stage 2 is NUTS chains with gradients through the heart
 fixed-step heart is not continuous at the integrator's grid scale: along a line through the N
 preset, IVRT is a sawtooth with jumps of about half a step (≈ 0.45 ms at 1000 steps per beat),
 and log p jumps by about 0.6 / 0.15 at 500 / 1000 steps per beat. Step-size adaptation then
-settles at 0.016 (500 steps) against 0.1–0.3 (2000 steps, the default
+settles at 0.016 (500 steps) against 0.14–0.37 (2000 steps, the default
 ``gradient_steps_per_beat``) in whitened units, and each leapfrog step of all chains is a
 steady state plus 15 tangents (README for the cost). The ensemble chains stay the default.
 
