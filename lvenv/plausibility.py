@@ -48,7 +48,7 @@ from lvenv.metrics import METRICS, OBS_NAMES
 from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError
 
-__all__ = ["Band", "AORTIC", "FILLING", "resolve", "distance", "penalty", "inside_bands", "report"]
+__all__ = ["Band", "AORTIC", "FILLING", "resolve", "distance", "distance_slope", "penalty", "inside_bands", "report"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +100,11 @@ def resolve(plausibility: bool | Sequence[Band]) -> tuple[Band, ...]:
 def distance(band: Band, value):
     """d = max(0, lo − o, o − hi) (internal units), elementwise; NaN stays NaN."""
     return jnp.maximum(0.0, jnp.maximum(band.low - value, value - band.high))
+
+
+def distance_slope(band: Band, value):
+    """d d / d o: −1 below the band, +1 above it, 0 inside (elementwise)."""
+    return jnp.where(value < band.low, -1.0, jnp.where(value > band.high, 1.0, 0.0))
 
 
 def penalty(metrics: Mapping[str, object], bands: Sequence[Band]):

@@ -372,7 +372,7 @@ class _Mixture:
     def sample(self, n: int, random: np.random.RandomState) -> np.ndarray:
         k = random.choice(len(self.weights), size=n, p=self.weights / self.weights.sum())
         z = self.means[k] + np.einsum("nij,nj->ni", self.chol[k], random.standard_normal((n, self.means.shape[1])))
-        return np.clip(1.0 / (1.0 + np.exp(-z)), _EDGE, 1.0 - _EDGE)
+        return _from_logit(z)
 
     def log_density(self, u: np.ndarray) -> np.ndarray:
         from scipy.linalg import solve_triangular
@@ -387,6 +387,12 @@ class _Mixture:
 def _logit(u: np.ndarray) -> np.ndarray:
     u = np.clip(u, _EDGE, 1.0 - _EDGE)
     return np.log(u) - np.log1p(-u)
+
+
+def _from_logit(z: np.ndarray) -> np.ndarray:
+    """The unit-cube points of logit coordinates ``z``, kept :data:`_EDGE` from the faces."""
+    with np.errstate(over="ignore"):  # exp(−z) = inf far below the cube gives 0, clipped
+        return np.clip(1.0 / (1.0 + np.exp(-z)), _EDGE, 1.0 - _EDGE)
 
 
 def _chain_moves(pilot: np.ndarray, seed: int) -> list:

@@ -45,7 +45,7 @@ import lvenv
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import OBS_NAMES
 from lvenv.patients import Patient, builtin
-from lvenv.plausibility import Band, distance, resolve
+from lvenv.plausibility import Band, distance, distance_slope, resolve
 from lvenv.validation import integer
 from optim.minimize import MinimizeResult, _result
 from optim.protocol import History, OptimResult
@@ -91,9 +91,8 @@ class _Problem:
                 band_res, band_rows = [], []
                 for band in self.bands:
                     value = at[band.metric]
-                    side = -1.0 if value < band.low else 1.0 if value > band.high else 0.0  # d d_b / d o_b
                     band_res.append(float(distance(band, value)) / band.scale)
-                    band_rows.append(side / band.scale * d_metrics[self.metrics.index(band.metric)])
+                    band_rows.append(float(distance_slope(band, value)) / band.scale * d_metrics[self.metrics.index(band.metric)])
                 residual = np.concatenate([self.sqrt_w * rel, band_res])
                 jacobian = np.vstack([*rows, *band_rows])
                 obs = np.array([at[k] for k in OBS_NAMES])

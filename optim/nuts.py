@@ -34,13 +34,12 @@ from collections.abc import Callable, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.special import expit
 
 import lvenv
 from lvenv.identification import ParameterSpace
 from lvenv.patients import Patient
-from lvenv.plausibility import Band, distance
-from optim.identify import _EDGE
+from lvenv.plausibility import Band, distance, distance_slope
+from optim.identify import _from_logit
 
 __all__ = ["LogDensity", "as_jax", "run_nuts", "TARGET_ACCEPTANCE"]
 
@@ -65,7 +64,7 @@ class LogDensity:
 
     def unit(self, w: np.ndarray) -> np.ndarray:
         """Unit-cube points of whitened points ``w`` (n, d)."""
-        return np.clip(expit(self.mean + np.asarray(w, float) @ self.chol.T), _EDGE, 1.0 - _EDGE)
+        return _from_logit(self.mean + np.asarray(w, float) @ self.chol.T)
 
     def __call__(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         w = np.asarray(w, float)
@@ -84,8 +83,7 @@ class LogDensity:
         grad_u = -np.einsum("nk,nkj->nj", r / self.sigma, values[:, : len(self.targets)])
         for band in self.bands:
             value = at[band.metric]
-            dist = np.asarray(distance(band, value), float)
-            side = np.where(value < band.low, -1.0, np.where(value > band.high, 1.0, 0.0))
+            dist, side = (np.asarray(f(band, value), float) for f in (distance, distance_slope))
             logp -= 0.5 * (dist / self.band_sd) ** 2
             grad_u -= (dist * side / self.band_sd**2)[:, None] * values[:, self.metrics.index(band.metric)]
         logp += np.sum(np.log(u * (1.0 - u)), axis=1)
@@ -135,26 +133,18 @@ def run_nuts(host: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], start:
     chains, d = start.shape
     eye = jnp.eye(d)
 
-    def step(key, state, size):
-        return kernel(key, state, log_density, size, eye, max_num_doublings=max_doublings)
-
     @jax.jit
     def init(position):
         return jax.vmap(lambda p: blackjax.nuts.init(p, log_density))(position)
 
     @jax.jit
-    def adapt(keys, state, da):
-        def one(key, state, da):
-            state, info = step(key, state, jnp.exp(da.log_step_size))
-            return state, da_update(da, info.acceptance_rate), info.acceptance_rate, info.num_integration_steps
-        return jax.vmap(one)(keys, state, da)
-
-    @jax.jit
-    def sample(keys, state, size):
+    def transition(keys, state, size):
         def one(key, state, size):
-            state, info = step(key, state, size)
+            state, info = kernel(key, state, log_density, size, eye, max_num_doublings=max_doublings)
             return state, info.acceptance_rate, info.num_integration_steps, info.is_divergent
         return jax.vmap(one)(keys, state, size)
+
+    adapt = jax.jit(jax.vmap(da_update))
 
     key = jax.random.key(seed)
     clock = time.perf_counter()
@@ -163,7 +153,8 @@ def run_nuts(host: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], start:
     accept, leapfrogs, divergent, positions = [], [], [], []
     for i in range(warmup):
         key, sub = jax.random.split(key)
-        state, da, a, n = adapt(jax.random.split(sub, chains), state, da)
+        state, a, n, _ = transition(jax.random.split(sub, chains), state, jnp.exp(da.log_step_size))
+        da = adapt(da, a)
         accept.append(np.asarray(a))
         leapfrogs.append(np.asarray(n))
         if progress and (i + 1) % 10 == 0:
@@ -172,7 +163,7 @@ def run_nuts(host: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], start:
     size = jax.vmap(da_final)(da) if warmup else jnp.full(chains, step_size)
     for i in range(draws):
         key, sub = jax.random.split(key)
-        state, a, n, div = sample(jax.random.split(sub, chains), state, size)
+        state, a, n, div = transition(jax.random.split(sub, chains), state, size)
         accept.append(np.asarray(a))
         leapfrogs.append(np.asarray(n))
         divergent.append(np.asarray(div))
