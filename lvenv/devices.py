@@ -31,19 +31,28 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-__all__ = ["request_cpu_devices", "shard_members", "padded_size", "layout", "member_mesh", "MIN_MEMBERS_PER_DEVICE", "LANES", "CPU_BLOCK"]
+__all__ = ["request_cpu_devices", "shard_members", "padded_size", "layout", "member_mesh", "queue_lanes", "MIN_MEMBERS_PER_DEVICE", "LANES", "CPU_BLOCK",
+           "QUEUE_MEMBERS_PER_LANE"]
 
 MIN_MEMBERS_PER_DEVICE = 64
 #: Members per device are padded to a multiple of this (module docstring).
 LANES = 16
-#: On the CPU a device runs its members in blocks of at most this many, one block after the other,
-#: or queued through this many lanes (:func:`lvenv.simulation.run_beats_queued`; ``LVENV_CPU_BLOCK``
-#: overrides it; 0 turns blocks off). A block's working set stays in the core's cache: measured on
-#: this 2-core EPYC (jitted core, 1000 fixed steps per beat), batches of 1,024 and 4,096 ran 9.3 k
-#: and 9.1 k beats/s without blocks and 14.8 k and 15.0 k with blocks of 256. The adaptive
-#: scheme's replay grid (1,024 trial steps per member) is 2 MB at 256 members, and 64 were faster
-#: for both schemes (README, Performance).
+#: On the CPU a device runs its members in blocks of at most this many, one block after the other
+#: (``LVENV_CPU_BLOCK`` overrides it; 0 turns blocks off). A block's working set stays in the core's
+#: cache: measured on this 2-core EPYC (jitted core, 1000 fixed steps per beat), batches of 1,024
+#: and 4,096 ran 9.3 k and 9.1 k beats/s without blocks and 14.8 k and 15.0 k with blocks of 256.
+#: The adaptive scheme's replay grid (1,024 trial steps per member) is 2 MB at 256 members, and 64
+#: were faster for both schemes (README, Performance).
 CPU_BLOCK = 64
+#: On the CPU the adaptive scheme to steady state queues a device's members through lanes
+#: (:func:`queue_lanes`, :func:`lvenv.simulation.run_beats_queued`), this many members per lane
+#: or more, between 32 lanes and :data:`CPU_BLOCK`. A lane idles from the moment the queue is
+#: empty until the last member finishes, about one member's run, which matters when a lane has
+#: only a few members. Measured on this 2-core EPYC, the env at 256 / 1,024 / 4,096 members (two
+#: envs in one process, alternating, 5–9 steps each): 32 lanes ran 2,066–2,131 against 1,778–1,816
+#: evaluations/s through 64 at 256 (128 members per device), 2,108–2,197 against 2,175–2,434
+#: at 1,024 and 2,511–2,958 against 2,578–2,808 at 4,096.
+QUEUE_MEMBERS_PER_LANE = 4
 
 
 def request_cpu_devices() -> None:
@@ -60,6 +69,20 @@ def _block_limit() -> int | None:
         return None
     limit = int(os.environ.get("LVENV_CPU_BLOCK", CPU_BLOCK))
     return None if limit <= 0 else max(LANES, limit // LANES * LANES)
+
+
+def queue_lanes(members: int) -> int | None:
+    """Lanes through which the adaptive scheme to steady state runs a device's ``members`` on the
+    CPU (:data:`QUEUE_MEMBERS_PER_LANE`; a multiple of :data:`LANES`, so a member's bits do not
+    depend on them); ``LVENV_CPU_QUEUE_LANES`` overrides it. None off the CPU (no queue)."""
+    if jax.default_backend() != "cpu":
+        return None
+    chosen = os.environ.get("LVENV_CPU_QUEUE_LANES")
+    if chosen is None:
+        return min(CPU_BLOCK, max(2 * LANES, members // QUEUE_MEMBERS_PER_LANE // LANES * LANES))
+    if not chosen.isdigit() or int(chosen) < LANES or int(chosen) % LANES:
+        raise ValueError(f"LVENV_CPU_QUEUE_LANES = {chosen!r} must be a positive multiple of {LANES} (lvenv.devices.LANES)")
+    return int(chosen)
 
 
 def _ceil_div(a: int, b: int) -> int:

@@ -25,8 +25,8 @@ extrapolating the beat map's fixed point every second beat (:func:`run_beats`).
 :func:`run_beats_parallel` runs the core over a padded batch's layout (:func:`lvenv.devices.layout`):
 each device its own loops, and on the CPU blocks of at most :data:`lvenv.devices.CPU_BLOCK`
 members one after the other, so that a block's working set stays in cache, or, for the adaptive
-scheme to steady state, the device's members queued through that many lanes
-(:func:`run_beats_queued`). :data:`run_beats_jit` is its jitted form.
+scheme to steady state, the device's members queued through :func:`lvenv.devices.queue_lanes`
+lanes (:func:`run_beats_queued`). :data:`run_beats_jit` is its jitted form.
 
 Status (:mod:`lvenv.status`): a member whose state turns non-finite or leaves its physical range
 is ``nonfinite`` / ``diverged``; a last beat without the full valve cycle is ``no_valve_cycle``;
@@ -48,7 +48,7 @@ from jax.sharding import PartitionSpec
 
 from lvenv import cell, coupling, events, model
 from lvenv.circulation import beat_period
-from lvenv.devices import layout, member_mesh, shard_members
+from lvenv.devices import layout, member_mesh, queue_lanes, shard_members
 from lvenv.integrator import ros2_step
 from lvenv.metrics import METRIC_NAMES, SUMMARY_NAMES
 from lvenv.model import IDX_PC, IDX_V, ModelParams
@@ -448,8 +448,9 @@ def run_beats_parallel(p: ModelParams, y0: jax.Array, rtol, **settings):
     runs its own loops on its members (``shard_map``: no device waits for another's beats or
     steps), and on the CPU in blocks of at most :data:`lvenv.devices.CPU_BLOCK` members, one block
     after the other (``lax.map``), each with its own loops. The adaptive scheme to steady state
-    instead queues a device's members through one block's worth of lanes
-    (:func:`run_beats_queued`), so that no member waits for its block's slowest. (The fixed
+    on the CPU instead queues a device's members through :func:`lvenv.devices.queue_lanes` lanes
+    (:func:`run_beats_queued`) when they fill more than one block, so that no member waits for
+    its block's slowest. (The fixed
     scheme keeps the blocks: queued, its metrics differed from a lone run's in the last bits,
     about 1e-15 relative, which would break bit-identity across batch sizes.) A member's result
     does not depend on its block, lane or device. A batch whose size is not a padded size (e.g. one member under
@@ -461,11 +462,14 @@ def run_beats_parallel(p: ModelParams, y0: jax.Array, rtol, **settings):
     if used * blocks * block != n_members:
         return run(p, y0, rtol)
 
+    lanes = queue_lanes(blocks * block) if settings["steady"] and settings.get("scheme") == "adaptive" else None
+    queued = lanes is not None and blocks > 1
+
     def local(p, y0, rtol):
+        if queued:
+            return run_beats_queued(p, y0, rtol, lanes=lanes, **settings)
         if blocks == 1:
             return run(p, y0, rtol)
-        if settings["steady"] and settings.get("scheme") == "adaptive":
-            return run_beats_queued(p, y0, rtol, lanes=block, **settings)
         split = lambda x: jnp.moveaxis(x.reshape(x.shape[:-1] + (blocks, block)), -2, 0)
         out = jax.lax.map(lambda args: run(*args, rtol), (jax.tree.map(split, p), split(y0)))
         return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -2).reshape(x.shape[1:-1] + (blocks * block,)), out)

@@ -40,7 +40,7 @@ def test_a_member_is_bit_identical_in_batches_of_any_size(scheme):
 
 
 def test_queued_members_are_bit_identical_to_a_lone_run():
-    """The adaptive scheme to steady state queues a device's members through CPU_BLOCK lanes
+    """The adaptive scheme to steady state queues a device's members through lanes
     (lvenv.simulation.run_beats_queued): members finish after different numbers of beats, lanes
     take the next member when theirs finishes, and every member (converged, out of beats or
     failed) still gets exactly the bits, beats and steps of a run on its own."""
@@ -52,7 +52,8 @@ def test_queued_members_are_bit_identical_to_a_lone_run():
     y_bad = np.repeat(y0[:1], len(hearts), axis=0)
     y_bad[:2] = y0
     y_bad[150, 6] = np.nan  # one member fails at once, and its lane is refilled
-    assert devices.layout(len(hearts))[1] > 1, "several blocks per device: the queue is used"
+    _, blocks, block = devices.layout(len(hearts))
+    assert blocks > 1 and blocks * block > devices.queue_lanes(blocks * block), "several blocks per device: the queue is used"
     settings = dict(scheme="adaptive", acceleration="anderson", traces=False, max_beats=5)
     batch = lvenv.simulate(hearts, initial_state=y_bad, **settings)
     assert len(set(batch.beats.tolist())) >= 3 and batch.status[150] == "nonfinite"
@@ -124,6 +125,25 @@ def test_layout_is_read_back_from_a_padded_batch():
         assert used * blocks * block == devices.padded_size(n) >= n
         assert devices.layout(devices.padded_size(n)) == (used, blocks, block)
         assert block % devices.LANES == 0 and (blocks == 1 or block <= devices.CPU_BLOCK)
+
+
+def test_queue_lanes_give_each_lane_several_members(monkeypatch):
+    """The adaptive queue's lanes: multiples of LANES between 32 and CPU_BLOCK, at least
+    QUEUE_MEMBERS_PER_LANE members each where the range allows, never fewer as the batch grows;
+    LVENV_CPU_QUEUE_LANES overrides them and a bad value is refused by name."""
+    monkeypatch.delenv("LVENV_CPU_QUEUE_LANES", raising=False)
+    members = range(devices.LANES, 4097, devices.LANES)
+    lanes = [devices.queue_lanes(m) for m in members]
+    assert all(n % devices.LANES == 0 and 2 * devices.LANES <= n <= devices.CPU_BLOCK for n in lanes)
+    assert all(n * devices.QUEUE_MEMBERS_PER_LANE <= m or n == 2 * devices.LANES for m, n in zip(members, lanes))
+    assert lanes == sorted(lanes) and lanes[0] < lanes[-1] == devices.CPU_BLOCK
+    assert devices.queue_lanes(128) == 32 and devices.queue_lanes(512) == 64
+    monkeypatch.setenv("LVENV_CPU_QUEUE_LANES", "48")
+    assert devices.queue_lanes(128) == 48
+    for bad in ("40", "0", "x"):
+        monkeypatch.setenv("LVENV_CPU_QUEUE_LANES", bad)
+        with pytest.raises(ValueError, match=rf"LVENV_CPU_QUEUE_LANES = '{bad}' must be a positive multiple of 16"):
+            devices.queue_lanes(128)
 
 
 def test_bad_scheme_settings_are_rejected_naming_the_field():
