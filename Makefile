@@ -18,7 +18,7 @@ run: $(STAMP)
 	$(VENV)/bin/python scripts/fit_patients.py --out out/fit
 
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q
+	$(VENV)/bin/python -m pytest -q -n 2 --dist loadscope
 
 bench: $(STAMP)
 	$(VENV)/bin/python scripts/bench_lo.py
