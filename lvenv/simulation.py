@@ -450,10 +450,9 @@ def run_beats_parallel(p: ModelParams, y0: jax.Array, rtol, **settings):
     after the other (``lax.map``), each with its own loops. The adaptive scheme to steady state
     on the CPU instead queues a device's members through :func:`lvenv.devices.queue_lanes` lanes
     (:func:`run_beats_queued`) when they fill more than one block, so that no member waits for
-    its block's slowest. (The fixed
-    scheme keeps the blocks: queued, its metrics differed from a lone run's in the last bits,
-    about 1e-15 relative, which would break bit-identity across batch sizes.) A member's result
-    does not depend on its block, lane or device. A batch whose size is not a padded size (e.g. one member under
+    its block's slowest. (The fixed scheme keeps the blocks: queued, its metrics differed from a
+    lone run's in the last bits, about 1e-15 relative, which would break bit-identity across
+    batch sizes.) A member's result does not depend on its block, lane or device. A batch whose size is not a padded size (e.g. one member under
     ``jax.vmap``) runs as one block. Same arguments and result as :func:`run_beats`.
     """
     n_members = y0.shape[-1]
