@@ -12,8 +12,12 @@ the last bit from the same member's in a batch of 16 or more, while all multiple
 one device or sharded over two. Every batch is therefore padded to a multiple of :data:`LANES`
 = 16 members per device (two vectors of 8 float64), which costs a single simulation about a
 third more time than padding to 8 did, and buys bit-identical members across batch sizes
-(``tests/lvenv/test_batching.py``). In float32, sharding over two devices still changes the
-last bits; float32 runs agree within its precision only.
+(``tests/lvenv/test_batching.py``). Values computed outside the members' loops can still differ
+in the last bit between one device and two, where XLA compiles the program differently: the
+fixed scheme's calcium transient, once precomputed for the whole beat, did for four of five
+test hearts, so it is evaluated per step inside the loop (:func:`lvenv.simulation.beat`). In
+float32, sharding over two devices still changes the last bits; float32 runs agree within its
+precision only.
 
 Layout (:func:`layout`): each device runs its own members with its own loops
 (:func:`lvenv.simulation.run_beats_parallel`, ``shard_map``), and on the CPU in blocks of at

@@ -105,21 +105,23 @@ def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool, volume_trace: 
     """
     period, f, jac, sample = _beat_system(p)
     h = period / steps
-    t = jnp.arange(steps + 1, dtype=y0.dtype)[:, None] * h
-    ca, ca_rate = coupling.calcium(t, p.lo, p.cell), coupling.calcium_rate(t, p.lo, p.cell)
+    norm = cell.transient_norm(p.cell)
 
     acc0 = events.start(jnp.zeros_like(h), *sample(y0), period, volume_trace)
 
-    def step(carry, xs):
+    def step(carry, n):
         y, acc = carry
-        n, ca0, ca1, dca0 = xs
-        y1 = ros2_step(f, y, h, ca0, ca1, dca0, jac)
+        # [Ca] per member inside the loop, as in the adaptive scheme. Precomputed as (steps + 1, B)
+        # arrays, or carried from the step before, its last bits depended on how XLA compiled the
+        # program (one device or sharded over two; the block width), and so did every member's
+        t0, t1 = n * h, (n + 1) * h
+        ca0, ca1 = coupling.calcium(t0, p.lo, p.cell, norm), coupling.calcium(t1, p.lo, p.cell, norm)
+        y1 = ros2_step(f, y, h, ca0, ca1, coupling.calcium_rate(t0, p.lo, p.cell, norm), jac)
         s = sample(y1)
-        acc1 = events.update(acc, (n + 1) * h, *s)
+        acc1 = events.update(acc, t1, *s)
         return (y1, acc1), ((s[0], s[1], s[4]) if record else None)
 
-    xs = (jnp.arange(steps, dtype=y0.dtype), ca[:-1], ca[1:], ca_rate[:-1])
-    (y_end, acc), samples = jax.lax.scan(step, (y0, acc0), xs, unroll=_scan_unroll())
+    (y_end, acc), samples = jax.lax.scan(step, (y0, acc0), jnp.arange(steps, dtype=y0.dtype), unroll=_scan_unroll())
     metrics, valid = events.finish(acc, period)
     traces = None
     if record:
