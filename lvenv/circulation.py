@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from lvenv.params import Circulation
 
-__all__ = ["Flows", "flows", "valves_open", "windkessel_derivatives", "jacobian", "aortic_pressure", "total_volume", "beat_period"]
+__all__ = ["Flows", "flows", "valves_open", "open_fractions", "windkessel_derivatives", "jacobian", "aortic_pressure", "total_volume", "beat_period"]
 
 
 class Flows(tuple):
@@ -61,6 +61,22 @@ def valves_open(p_lv, p_c, p_at_state, circ: Circulation):
     return atrial_pressure(p_at_state, circ) - p_lv > 0.0, p_lv - p_c > 0.0
 
 
+def open_fractions(start, end, circ: Circulation):
+    """(mitral, aortic): the fraction of a step each valve is open, given the pressures
+    (P_lv, P_c, P_at state; kPa) at the step's start and predicted at its end, linear in between.
+
+    1 open throughout, 0 shut throughout; for a valve that opens or shuts within the step, the
+    part of the step on the open side of the pressure line's zero. Continuous in both ends.
+    """
+    def fraction(g0, g1):
+        span = jnp.abs(g0) + jnp.abs(g1)
+        return (jnp.maximum(g0, 0.0) + jnp.maximum(g1, 0.0)) / jnp.where(span > 0.0, span, 1.0)
+
+    (p_lv0, p_c0, p_at0), (p_lv1, p_c1, p_at1) = start, end
+    return (fraction(atrial_pressure(p_at0, circ) - p_lv0, atrial_pressure(p_at1, circ) - p_lv1),
+            fraction(p_lv0 - p_c0, p_lv1 - p_c1))
+
+
 def flows(p_lv, p_c, p_at_state, circ: Circulation) -> Flows:
     """Mitral, aortic and peripheral flows (ml/s) for LV, capacitor and atrial-state pressures (kPa)."""
     p_at = atrial_pressure(p_at_state, circ)
@@ -82,11 +98,12 @@ def windkessel_derivatives(q: Flows, circ: Circulation):
 def jacobian(mitral_open, aortic_open, circ: Circulation) -> list[list]:
     """∂(dV/dt, dP_c/dt, dP_at/dt) / ∂(P_lv, P_c, P_at state) for the given valve states (3 × 3).
 
-    An open valve conducts g_mv = 1/Rmv, g_ao = 1/(R1 + R2); a shut one not at all. Units: ml/(s·kPa)
-    in the first row, 1/s in the others.
+    An open valve conducts g_mv = 1/Rmv, g_ao = 1/(R1 + R2); a shut one not at all. The states may
+    also be fractions in [0, 1] (:func:`open_fractions`), which scale the conductances. Units:
+    ml/(s·kPa) in the first row, 1/s in the others.
     """
-    g_mv = jnp.where(mitral_open, 1.0 / circ.Rmv, 0.0)
-    g_ao = jnp.where(aortic_open, 1.0 / (circ.R1 + circ.R2), 0.0)
+    g_mv = mitral_open * (1.0 / circ.Rmv)
+    g_ao = aortic_open * (1.0 / (circ.R1 + circ.R2))
     closed = circ.closed_loop
     return [
         [-(g_mv + g_ao), g_ao, closed * g_mv],

@@ -146,11 +146,16 @@ def jacobian(ca, y, p: ModelParams, k: cell.Rates, lookahead=None) -> list[list]
     matching ``jax.jacfwd``; with ``lookahead=None`` so are the valves. Checked against
     forward-mode AD in the tests.
 
-    ``lookahead`` (a state increment, the step's explicit predictor h·f): a valve's conductance
-    also enters when the valve is open at y + lookahead (pressures extrapolated linearly). This
-    is the W-method freedom of ROS2 (order 2 for any matrix): a step that opens a valve then
-    treats the stiff valve flow implicitly instead of chattering across the switch. The matrix
-    keeps wᵀJ = 0, so the closed-loop volume stays conserved.
+    ``lookahead`` (a state increment, the step's explicit predictor h·f): each valve's
+    conductance enters weighted by the fraction of the step it is open on the line from y to
+    y + lookahead (pressures extrapolated linearly; :func:`lvenv.circulation.open_fractions`).
+    This is the W-method freedom of ROS2 (order 2 for any matrix): a step that opens a valve
+    treats the stiff valve flow implicitly instead of chattering across the switch, and the
+    matrix, hence the step, is continuous in the state, so a fixed-step beat's metrics are
+    continuous in the parameters. A yes/no weight (open at y or at y + lookahead) made each valve
+    event jump by up to a step wherever the switch moved from one step to the next (IVRT by
+    1.9 ms at 500 steps per beat along a line through the N preset, against 0.03 ms now). The
+    matrix keeps wᵀJ = 0, so the closed-loop volume stays conserved.
     """
     lo, circ = p.lo, p.circ
     y_cell, v, p_c, p_at_state = y[: cell.N_STATES], y[IDX_V], y[IDX_PC], y[IDX_PAT]
@@ -163,8 +168,7 @@ def jacobian(ca, y, p: ModelParams, k: cell.Rates, lookahead=None) -> list[list]
     mitral, aortic = circulation.valves_open(p_lv, p_c, p_at_state, circ)
     if lookahead is not None:
         ahead = sum(d * lookahead[j] for j, d in enumerate(dp_lv) if not is_zero(d))
-        mitral_ahead, aortic_ahead = circulation.valves_open(p_lv + ahead, p_c + lookahead[IDX_PC], p_at_state + lookahead[IDX_PAT], circ)
-        mitral, aortic = mitral | mitral_ahead, aortic | aortic_ahead
+        mitral, aortic = circulation.open_fractions((p_lv, p_c, p_at_state), (p_lv + ahead, p_c + lookahead[IDX_PC], p_at_state + lookahead[IDX_PAT]), circ)
     rows_circ = []
     for d_lv, d_pc, d_pat in circulation.jacobian(mitral, aortic, circ):
         row = [_mul(d_lv, d) for d in dp_lv]

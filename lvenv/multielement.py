@@ -330,12 +330,11 @@ def _linearise(kind: str, p: ElementParams, k: cell.Rates, ca, cells, glob, v_el
     else:
         denom = 1.0 - sigma
         a1 = rho_v / denom
-    # valves: open at the state or at its linear prediction y + h f (as lvenv.model.jacobian)
+    # valves: the fraction of the step each is open, from the state to its linear prediction y + h f (as lvenv.model.jacobian)
     p_c, p_at = glob[1], glob[2]
     ahead = h * (_dot(rho, f_cells) + rho_v * f_glob[0])
-    mitral, aortic = circulation.valves_open(p_lv, p_c, p_at, p.circ)
-    mitral_ahead, aortic_ahead = circulation.valves_open(p_lv + ahead, p_c + h * f_glob[1], p_at + h * f_glob[2], p.circ)
-    circ_jac = circulation.jacobian(mitral | mitral_ahead, aortic | aortic_ahead, p.circ)
+    mitral, aortic = circulation.open_fractions((p_lv, p_c, p_at), (p_lv + ahead, p_c + h * f_glob[1], p_at + h * f_glob[2]), p.circ)
+    circ_jac = circulation.jacobian(mitral, aortic, p.circ)
     c_p = [row[0] for row in circ_jac]
     g = [[(1.0 if i == 0 else 0.0) - gh * c_p[i] * a1] + [(1.0 if i == j else 0.0) - gh * circ_jac[i][j] for j in (1, 2)] for i in range(_N_GLOBAL)]
     return _Linearisation(lu=lu, v=v, rho=rho, denom=denom, a1=a1, c_p=c_p, g_lu=lu_factor(g), t=t, d=d)

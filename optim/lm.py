@@ -25,9 +25,10 @@ on the built-in patients finish 2.1–2.4× sooner than one after another (READM
 
 Limits (README, "Derivatives"): the residuals are only piecewise smooth. Valve events are
 interpolated between steps, which puts O(h) kinks into them: at 250 steps per beat the trust
-region stalls near 1 % mismatch, at the default 1000 near 0.1 %. And near the trained N preset
-(Cat ≈ 2 ml/kPa) IVRT jumps by about a step, because P_lv − P_at grazes zero at mitral opening;
-a start there may stall, and the other starts are what gets past it. Returned as the same `MinimizeResult` as the other
+region stalled near 1 % mismatch, at the default 1000 near 0.1 % (measured while the valves'
+yes/no switch in the integrator still made IVRT jump by up to a step near the trained N preset;
+the valve weights of :func:`lvenv.model.jacobian` removed those jumps). A start may still stall
+at a kink, and the other starts are what gets past it. Returned as the same `MinimizeResult` as the other
 methods (method "lm"; one history row per evaluation, by start within each batched evaluation;
 the env history's `batch` counts those, the optimiser history's is the start's index).
 """

@@ -139,7 +139,7 @@ def test_the_persistent_jit_cache_stores_compiled_programs_unless_turned_off(tmp
     import sys
 
     env = {**os.environ, "LVENV_JIT_CACHE": str(tmp_path / "jax")}
-    argv = [sys.executable, "-m", "lvenv.cli", "simulate", "--beats", "1", "--steps-per-beat", "50", "--json"]
+    argv = [sys.executable, "-m", "lvenv.cli", "simulate", "--beats", "1", "--steps-per-beat", "100", "--json"]
     done = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert list((tmp_path / "jax").iterdir()), "the process stored its compiled programs"
