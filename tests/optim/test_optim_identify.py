@@ -178,6 +178,28 @@ def test_mixture_proposal_density_matches_its_draws():
     assert np.sum(per_bin * np.diff(edges)) == pytest.approx(1.0, abs=0.01)
 
 
+def test_highest_density_interval_reaches_the_bound_the_samples_pile_against():
+    """R2 drawn with density rising linearly to its upper bound: the equal-tailed interval leaves
+    out the top 5 %, the most probable values; the highest-density one ends at the largest sample
+    and still holds 90 %. A symmetric posterior inside the bounds gets the equal-tailed interval."""
+    from optim.identify import Posterior
+
+    rng = np.random.default_rng(3)
+    lo, hi = ACTION_BOUNDS["R2"].lo, ACTION_BOUNDS["R2"].hi
+    r2 = lo + (hi - lo) * np.sqrt(rng.random(40_000))  # density ∝ R2 − lo
+    sa = rng.normal(1.0, 0.05, 40_000)
+    samples = {"R2": r2, "Sa": sa}
+    post = Posterior(samples, {}, {n: (float(np.percentile(v, 5)), float(np.percentile(v, 95))) for n, v in samples.items()},
+                     0.5, {}, {}, {}, 0, 0, 0)
+    hdi = post.highest_density(0.9)
+    assert hdi["R2"][1] == r2.max() and post.interval_90["R2"][1] < hi - 0.02 * (hi - lo)
+    assert np.mean((r2 >= hdi["R2"][0]) & (r2 <= hdi["R2"][1])) == pytest.approx(0.9, abs=1e-3)
+    assert hdi["R2"][1] - hdi["R2"][0] < post.interval_90["R2"][1] - post.interval_90["R2"][0]
+    np.testing.assert_allclose(hdi["Sa"], post.interval_90["Sa"], atol=0.005)
+    with pytest.raises(ValueError, match="level"):
+        post.highest_density(0.0)
+
+
 def test_identifiability_report_holds_every_parameter_its_figures_and_the_numbers_behind_them(tmp_path):
     import json
 
