@@ -56,9 +56,15 @@ def atrial_pressure(p_at_state, circ: Circulation):
     return jnp.where(circ.closed_loop > 0.5, p_at_state, circ.Pat)
 
 
+def _valve_drops(p_lv, p_c, p_at_state, circ: Circulation):
+    """(P_at − P_lv, P_lv − P_c) in kPa: positive where the mitral, the aortic valve is open."""
+    return atrial_pressure(p_at_state, circ) - p_lv, p_lv - p_c
+
+
 def valves_open(p_lv, p_c, p_at_state, circ: Circulation):
     """(mitral open, aortic open): P_at > P_lv and P_lv > P_c."""
-    return atrial_pressure(p_at_state, circ) - p_lv > 0.0, p_lv - p_c > 0.0
+    g_mv, g_ao = _valve_drops(p_lv, p_c, p_at_state, circ)
+    return g_mv > 0.0, g_ao > 0.0
 
 
 def open_fractions(start, end, circ: Circulation):
@@ -72,9 +78,7 @@ def open_fractions(start, end, circ: Circulation):
         span = jnp.abs(g0) + jnp.abs(g1)
         return (jnp.maximum(g0, 0.0) + jnp.maximum(g1, 0.0)) / jnp.where(span > 0.0, span, 1.0)
 
-    (p_lv0, p_c0, p_at0), (p_lv1, p_c1, p_at1) = start, end
-    return (fraction(atrial_pressure(p_at0, circ) - p_lv0, atrial_pressure(p_at1, circ) - p_lv1),
-            fraction(p_lv0 - p_c0, p_lv1 - p_c1))
+    return tuple(fraction(g0, g1) for g0, g1 in zip(_valve_drops(*start, circ), _valve_drops(*end, circ)))
 
 
 def flows(p_lv, p_c, p_at_state, circ: Circulation) -> Flows:

@@ -165,8 +165,9 @@ def jacobian(ca, y, p: ModelParams, k: cell.Rates, lookahead=None) -> list[list]
     dp_dv = lo.mu2 * dta_dlam * dlam_dv + coupling.passive_pressure_slope(v, p.v0, lo)
     dp_lv = [_mul(lo.mu2, d) for d in dta_dy] + [dp_dv, 0.0, 0.0]
     p_lv = coupling.lv_pressure(cell.active_tension(y_cell, lam, p.cell), v, p.v0, lo)
-    mitral, aortic = circulation.valves_open(p_lv, p_c, p_at_state, circ)
-    if lookahead is not None:
+    if lookahead is None:
+        mitral, aortic = circulation.valves_open(p_lv, p_c, p_at_state, circ)
+    else:
         ahead = sum(d * lookahead[j] for j, d in enumerate(dp_lv) if not is_zero(d))
         mitral, aortic = circulation.open_fractions((p_lv, p_c, p_at_state), (p_lv + ahead, p_c + lookahead[IDX_PC], p_at_state + lookahead[IDX_PAT]), circ)
     rows_circ = []

@@ -68,9 +68,10 @@ def main() -> None:
         post = posterior(patient, start=fit.parameters, seed=a.seed + i, **sampler_options(a))
         true = dict(zip(DEFAULT_ACTION_PARAMS, map(float, truths[i])))
         hdi = post.highest_density(0.9)
-        hit = {n: bool(post.interval_90[n][0] <= true[n] <= post.interval_90[n][1]) for n in DEFAULT_ACTION_PARAMS}
+        contains = lambda interval: {n: bool(interval[n][0] <= true[n] <= interval[n][1]) for n in DEFAULT_ACTION_PARAMS}
+        hit = contains(post.interval_90)
         runs.append({"truth": true, "targets": patient.targets, "fit_mismatch": fit.mismatch, "interval_90": post.interval_90,
-                     "widths": post.widths(), "inside": hit, "hdi_90": hdi, "inside_hdi": {n: bool(hdi[n][0] <= true[n] <= hdi[n][1]) for n in hdi},
+                     "widths": post.widths(), "inside": hit, "hdi_90": hdi, "inside_hdi": contains(hdi),
                      "quantile": {n: float(np.mean(post.samples[n] < true[n])) for n in DEFAULT_ACTION_PARAMS},
                      "rhat": post.rhat, "acceptance": post.acceptance, "wall_s": time.perf_counter() - t0})
         save_records(checkpoint, runs, settings)
