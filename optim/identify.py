@@ -86,6 +86,11 @@ emcee's integrated autocorrelation time τ per parameter and the effective sampl
 kept steps / τ), and the split R-hat of Gelman et al. (BDA3, §11.4), largest over parameters
 below 1.01 in the README's runs of the built-in patients. :func:`probability_lower` compares two patients' posteriors.
 
+Calibration: :func:`prior_draws` draws truths from this prior exactly (rejection sampling), with
+their observations from the posterior's env; :func:`log_density` evaluates the unnormalised
+posterior density at any parameters, to rank a truth among the samples
+(``scripts/calibration.py``).
+
 :func:`write_report`: all of the above at a fit, as a per-patient markdown report with the profile
 curves and the posterior pairs plot as PNG (``lvenv fit PATIENT --report DIR``).
 """
@@ -113,7 +118,7 @@ from lvenv.validation import InputError, integer, real
 from optim.cohort import CohortOptions, Report, fit_reports
 
 __all__ = ["NOISE", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
-           "probability_lower", "chi2", "write_report", "SAMPLERS", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
+           "probability_lower", "prior_draws", "log_density", "chi2", "write_report", "SAMPLERS", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
 
 #: Standard deviation of each target's measurement error, internal units (sources in the module
 #: docstring): EF 0.05, time intervals 10 ms, pressures 5 mmHg (filling pressures included),
@@ -426,6 +431,113 @@ def _chain_moves(pilot: np.ndarray, seed: int) -> list:
     return [(emcee.moves.MHMove(independence), INDEPENDENCE_SHARE), (emcee.moves.GaussianMove(walk), 1.0 - INDEPENDENCE_SHARE)]
 
 
+def _evaluate(venv: Any, x: np.ndarray, target_names: Sequence[str], bands: Sequence[Band]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One step of ``venv`` at the physical parameter rows ``x`` (at most its size; the rest of
+    the batch repeats the last row). Returns the rows' observations of ``target_names`` (n, k),
+    whether each heart is usable (status ok or not_converged, finite targets), and the log of the
+    prior's plausibility factor, −½ Σ_b (d_b / :data:`PLAUSIBILITY_SD`)² (module docstring)."""
+    padded = np.concatenate([x, np.repeat(x[-1:], venv.num_envs - len(x), axis=0)])
+    _, _, _, _, info = venv.step(venv.unwrapped.config.actions.to_action(padded))
+    obs = np.stack([np.asarray(info[k], float) for k in target_names], axis=1)[: len(x)]
+    ok = np.isin(info["status"][: len(x)], ("ok", "not_converged")) & np.all(np.isfinite(obs), axis=1)
+    log_factor = -0.5 * sum((np.asarray(distance(b, info[b.metric][: len(x)])) / PLAUSIBILITY_SD) ** 2 for b in bands)
+    return obs, ok, np.broadcast_to(log_factor, (len(x),))
+
+
+def _log_posterior(venv: Any, x: np.ndarray, patient: Patient, sigma: np.ndarray, bands: Sequence[Band]) -> tuple[np.ndarray, np.ndarray]:
+    """The unnormalised log posterior at the physical rows ``x`` (one step of ``venv``, at most
+    its size), −½ χ² plus the log plausibility factor, −inf for an unusable heart; and which
+    hearts were usable."""
+    obs, ok, log_factor = _evaluate(venv, x, list(patient.targets), bands)
+    value = -0.5 * np.sum(((obs - np.array(list(patient.targets.values()))) / sigma) ** 2, axis=1) + log_factor
+    return np.where(ok, value, -np.inf), ok
+
+
+def log_density(
+    patient: Patient,
+    x: np.ndarray,
+    *,
+    noise: Mapping[str, float] = NOISE,
+    plausibility: bool | Sequence[Band] = True,
+    batch: int = 32,
+    steps_per_beat: int = 500,
+    max_beats: int = 60,
+) -> np.ndarray:
+    """:func:`posterior`'s unnormalised log density at the physical rows ``x`` ((n, 6), columns
+    :data:`DEFAULT_ACTION_PARAMS`), in the unit-cube coordinate where the prior is uniform: −½ χ²
+    plus the log plausibility factor; −inf outside the bounds or for an unusable heart. One env
+    of ``batch`` members at the posterior's settings. Comparing a point's density with that of
+    the posterior's samples places it in the posterior's highest-density regions: for a truth
+    drawn from the prior (:func:`prior_draws`), the fraction of samples below it is uniform."""
+    from optim.fit import make_env
+
+    x = np.atleast_2d(np.asarray(x, float))
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
+    inside = np.all((x >= space.lower) & (x <= space.upper), axis=1)
+    sigma, bands = _sigma(patient, noise), resolve_bands(plausibility)
+    venv = make_env(patient, integer("batch", batch, 1), steps_per_beat, max_beats)
+    venv.reset(seed=0)
+    try:
+        value = np.concatenate([_log_posterior(venv, x[i: i + batch], patient, sigma, bands)[0] for i in range(0, len(x), batch)])
+    finally:
+        venv.close()
+    return np.where(inside, value, -np.inf)
+
+
+#: :func:`prior_draws` gives up after this many uniform draws per requested one (it keeps about
+#: 1 in 4 with the default bands).
+PRIOR_TRIES = 1000
+
+
+def prior_draws(
+    n: int,
+    patient: Patient,
+    *,
+    seed: int = 0,
+    batch: int = 32,
+    steps_per_beat: int = 500,
+    max_beats: int = 60,
+    plausibility: bool | Sequence[Band] = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` exact draws from :func:`posterior`'s prior, and the noise-free observations of
+    ``patient``'s targets at each.
+
+    The prior is uniform in the unit cube of the identification bounds (log-uniform on log axes),
+    times the plausibility factor exp(−½ Σ_b (d_b / :data:`PLAUSIBILITY_SD`)²), on hearts that
+    simulate usably (module docstring). The factor is at most 1, so keeping a uniform draw with
+    probability equal to it is exact rejection sampling. The hearts are simulated by the env that
+    :func:`posterior` uses (``patient``'s heart with the six parameters replaced, ``batch``
+    members, ``steps_per_beat``, ``max_beats``), so their observations are what its likelihood
+    compares. Truths for simulation-based calibration must come from this prior: then, whatever
+    the model, exact posteriors' 90 % intervals hold 90 % of them (Talts S et al.,
+    arXiv:1804.06788, 2018). Returns (n, 6) parameters (physical units, columns
+    :data:`DEFAULT_ACTION_PARAMS`) and (n, number of targets) observations (internal units).
+    """
+    from optim.fit import make_env
+
+    n, seed, batch = integer("n", n, 1), integer("seed", seed, 0), integer("batch", batch, 1)
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
+    bands = resolve_bands(plausibility)
+    rng = np.random.default_rng(seed)
+    venv = make_env(patient, batch, steps_per_beat, max_beats)
+    venv.reset(seed=seed)
+    kept_x, kept_obs, tried = [], [], 0
+    try:
+        while len(kept_x) < n:
+            if tried >= PRIOR_TRIES * n:
+                raise RuntimeError(f"prior_draws kept {len(kept_x)} of {tried} uniform draws, fewer than 1 in {PRIOR_TRIES}: "
+                                   f"the plausibility bands {[b.describe() for b in bands]} leave almost no usable heart inside the bounds")
+            x = space.from_unit(rng.random((batch, space.dimension)))
+            obs, ok, log_factor = _evaluate(venv, x, list(patient.targets), bands)
+            keep = ok & (rng.random(batch) < np.exp(log_factor))
+            kept_x.extend(x[keep])
+            kept_obs.extend(obs[keep])
+            tried += batch
+    finally:
+        venv.close()
+    return np.array(kept_x[:n]), np.array(kept_obs[:n])
+
+
 def posterior(
     patient: Patient,
     *,
@@ -499,13 +611,10 @@ def posterior(
     max_doublings = integer("max_doublings", max_doublings, 1, 10)
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     sigma = _sigma(patient, noise)
-    targets = np.array(list(patient.targets.values()))
-    target_names = list(patient.targets)
     bands = resolve_bands(plausibility)
     block_size = walkers // 2
     venv = make_env(patient, block_size, steps_per_beat, max_beats)
     venv.reset(seed=seed)
-    action_map = venv.unwrapped.config.actions
     counts = {"evaluations": 0, "failed": 0}
 
     def log_prob(u: np.ndarray) -> np.ndarray:
@@ -515,15 +624,9 @@ def posterior(
         out = np.full(len(u), -np.inf)
         for start_row in range(0, len(u), block_size):
             block = slice(start_row, start_row + block_size)
-            rows = x[block]
-            padded = np.concatenate([rows, np.repeat(rows[-1:], block_size - len(rows), axis=0)])
-            _, _, _, _, info = venv.step(action_map.to_action(padded))
-            obs = np.stack([np.asarray(info[k], float) for k in target_names], axis=1)[: len(rows)]
-            ok = np.isin(info["status"][: len(rows)], ("ok", "not_converged")) & np.all(np.isfinite(obs), axis=1)
-            value = -0.5 * np.sum(((obs - targets) / sigma) ** 2, axis=1)
-            value -= 0.5 * sum((np.asarray(distance(b, info[b.metric][: len(rows)])) / PLAUSIBILITY_SD) ** 2 for b in bands)
-            out[block] = np.where(ok & inside[block], value, -np.inf)
-            counts["evaluations"] += len(rows)
+            value, ok = _log_posterior(venv, x[block], patient, sigma, bands)
+            out[block] = np.where(inside[block], value, -np.inf)
+            counts["evaluations"] += len(ok)
             counts["failed"] += int(np.sum(~ok))
         return out
 

@@ -1,6 +1,8 @@
 """`optim.identify`: the sensitivity's null directions and profile likelihoods whose every point
 is a real constrained fit, checked by an independent simulation."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -225,3 +227,45 @@ def test_identifiability_report_holds_every_parameter_its_figures_and_the_number
     assert record["fit"] == fit and set(record["targets"]) == set(patient.targets)
     assert f"χ² at the fit: {chi2(patient, off):.3g}" in text, "χ² is of the observation passed in"
     assert len(record["sensitivity"]["null_directions"]) == 2, "four targets, six parameters"
+
+
+def test_prior_draws_are_the_posteriors_prior_and_carry_their_own_observations():
+    """Rejection sampling keeps a uniform draw with probability exp(log factor): no kept heart lies
+    4 σ or more outside the plausibility bands (a uniform draw does so about half the time), each
+    is usable, inside the bounds, and its observations are what the posterior's env computes; the
+    posterior's density peaks at the draw whose observations are the targets."""
+    from lvenv.identification import DEFAULT_ACTION_PARAMS
+    from lvenv.plausibility import resolve
+    from optim.fit import make_env
+    from optim.identify import NOISE, _evaluate, log_density, prior_draws
+
+    patient = builtin("normal")
+    x, obs = prior_draws(12, patient, seed=4, batch=16, steps_per_beat=STEPS, max_beats=30)
+    assert x.shape == (12, 6) and obs.shape == (12, len(patient.targets))
+    for j, name in enumerate(DEFAULT_ACTION_PARAMS):
+        assert np.all((x[:, j] >= ACTION_BOUNDS[name].lo) & (x[:, j] <= ACTION_BOUNDS[name].hi)), name
+    venv = make_env(patient, 16, STEPS, 30)
+    venv.reset(seed=0)
+    again, ok, log_factor = _evaluate(venv, x, list(patient.targets), resolve(True))
+    venv.close()
+    assert np.all(ok)
+    # each env member starts from its previous heart's steady state, so the event times move a little with the history
+    sigma = np.array([NOISE[k] for k in patient.targets])
+    assert np.all(np.abs(again - obs) < 0.25 * sigma), (again - obs) / sigma
+    assert np.all(log_factor > -8.0), log_factor
+    # the posterior's density for a patient whose targets are the first draw's observations: χ² ≈ 0 there
+    observed = dataclasses.replace(patient, targets=dict(zip(patient.targets, map(float, obs[0]))))
+    outside = np.concatenate([[2.0 * ACTION_BOUNDS["tau2"].hi], x[1, 1:]])
+    density = log_density(observed, np.vstack([x[:2], outside]), steps_per_beat=STEPS, max_beats=30, batch=16)
+    assert density[0] == pytest.approx(log_factor[0], abs=0.2) and density[1] < density[0] - 1.0
+    assert density[2] == -np.inf
+
+
+def test_prior_draws_give_up_with_the_bands_named_when_no_heart_is_plausible(monkeypatch):
+    import optim.identify
+    from lvenv.plausibility import Band
+
+    monkeypatch.setattr(optim.identify, "PRIOR_TRIES", 1)
+    impossible = (Band.mmhg("P_ao_mean", 400.0, 410.0, 80.0),)
+    with pytest.raises(RuntimeError, match="P_ao_mean 400–410 mmHg"):
+        optim.identify.prior_draws(1, builtin("normal"), batch=16, steps_per_beat=STEPS, max_beats=30, plausibility=impossible)
