@@ -27,7 +27,11 @@ arXiv:1804.06788, 2018) goes to the JSON at ``--out``, with its density quantile
 of 512 posterior samples (all, if fewer) whose posterior density (`optim.identify.log_density`) lies below the
 truth's. That too is uniform if calibrated; a truth outside its intervals whose density quantile
 is high sits in a region of high posterior density that the sampler did not visit. ``--seed`` picks the truths and their noise:
-a second seed is an independent check.
+a second seed is an independent check. A truth whose noisy targets are no valid patient record
+(``lvenv.patients.Patient``: EF ≤ 0 for a prior heart that barely ejects) is skipped, reported
+and listed in the JSON, and the next candidate takes its place. That conditions the data on
+being valid, which the posterior does not know: a small departure, for hearts whose EF lies
+within a few σ of 0.
 """
 
 from __future__ import annotations
@@ -44,12 +48,14 @@ from scipy.stats import binom
 from lvenv.archive import load_records, save_records
 from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.patients import Patient, builtin
+from lvenv.validation import InputError
 from optim.fit import draw_truths, make_env
 from optim.identify import NOISE, add_sampler_options, log_density, posterior, prior_draws, sampler_options
 from optim.minimize import minimize
 
 TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
 DENSITY_SAMPLES = 512  # posterior samples whose density the truth's is ranked against
+SPARE = 2  # candidate truths drawn per truth wanted, for those skipped
 
 
 def main() -> None:
@@ -63,18 +69,27 @@ def main() -> None:
     a = ap.parse_args()
     base = builtin("normal")
     ordered = dataclasses.replace(base, targets={k: base.targets[k] for k in TARGETS})  # observation columns in TARGETS order
-    truths, obs = (prior_draws(a.truths, ordered, seed=a.seed) if a.draw == "prior"
-                   else draw_truths(a.truths, np.random.default_rng(a.seed), base, TARGETS))
+    candidates = SPARE * a.truths
+    truths, obs = (prior_draws(candidates, ordered, seed=a.seed) if a.draw == "prior"
+                   else draw_truths(candidates, np.random.default_rng(a.seed), base, TARGETS))
     sigma = np.array([NOISE[k] for k in TARGETS])
     checkpoint = pathlib.Path(a.out + ".ckpt.npz")
     settings = {k: v for k, v in vars(a).items() if k != "out"}
     runs = load_records(checkpoint, settings)
     if runs:
         print(f"resuming after {len(runs)} truths from {checkpoint}", flush=True)
-    for i in range(len(runs), a.truths):
+    i = runs[-1]["index"] + 1 if runs else 0
+    while len(runs) < a.truths:
+        if i == candidates:
+            raise RuntimeError(f"only {len(runs)} of {candidates} candidate truths had valid noisy targets")
         t0 = time.perf_counter()
         noisy = obs[i] + sigma * np.random.default_rng([a.seed, i]).standard_normal(len(TARGETS))
-        patient = Patient(f"truth {i}", base.heart, dict(zip(TARGETS, map(float, noisy))))
+        try:
+            patient = Patient(f"truth {i}", base.heart, dict(zip(TARGETS, map(float, noisy))))
+        except InputError as error:
+            print(f"truth {i:2d}: skipped, its noisy targets are no patient record ({error})", flush=True)
+            i += 1
+            continue
         venv = make_env(dataclasses.replace(patient, weights={k: (t / s) ** 2 for (k, t), s in zip(patient.targets.items(), sigma)}))
         fit = minimize(venv, "mads", budget=480, seed=a.seed + i, progress=False)
         venv.close()
@@ -86,11 +101,12 @@ def main() -> None:
         picked = np.random.default_rng([a.seed, i, 1]).choice(len(post.samples["tau2"]), min(DENSITY_SAMPLES, len(post.samples["tau2"])), replace=False)
         rows = np.vstack([[truths[i]], np.stack([post.samples[n][picked] for n in DEFAULT_ACTION_PARAMS], axis=1)])
         density = log_density(patient, rows)
-        runs.append({"truth": true, "targets": patient.targets, "fit_mismatch": fit.mismatch, "interval_90": post.interval_90,
+        runs.append({"index": i, "truth": true, "targets": patient.targets, "fit_mismatch": fit.mismatch, "interval_90": post.interval_90,
                      "widths": post.widths(), "inside": hit, "hdi_90": hdi, "inside_hdi": contains(hdi),
                      "quantile": {n: float(np.mean(post.samples[n] < true[n])) for n in DEFAULT_ACTION_PARAMS},
                      "density_quantile": float(np.mean(density[1:] < density[0])),
                      "rhat": post.rhat, "acceptance": post.acceptance, "wall_s": time.perf_counter() - t0})
+        i += 1
         save_records(checkpoint, runs, settings)
         print(f"truth {i:2d}: fit {100 * fit.mismatch:.2f} %, inside " + " ".join(f"{n} {'y' if hit[n] else 'N'}" for n in DEFAULT_ACTION_PARAMS)
               + f" (R-hat ≤ {max(post.rhat.values()):.3f}, {time.perf_counter() - t0:.0f} s)", flush=True)
@@ -99,6 +115,7 @@ def main() -> None:
     tail = {key: {n: float(binom.cdf(round(c * a.truths), a.truths, 0.9)) for n, c in cov.items()} for key, cov in coverage.items()}
     width = {n: float(np.median([r["widths"][n] for r in runs])) for n in DEFAULT_ACTION_PARAMS}
     density_quantiles = sorted(r["density_quantile"] for r in runs)
+    skipped = sorted(set(range(runs[-1]["index"] + 1)) - {r["index"] for r in runs})
     print(f"\ncoverage of the 90 % intervals over {a.truths} noisy truths (P: so few hits or fewer if calibrated), and the median width (fraction of the bound)")
     print("| | " + " | ".join(DEFAULT_ACTION_PARAMS) + " | all |")
     print("|---|" + "---|" * (len(DEFAULT_ACTION_PARAMS) + 1))
@@ -111,7 +128,7 @@ def main() -> None:
     out = pathlib.Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"coverage": coverage["inside"], "coverage_hdi": coverage["inside_hdi"], "binomial_tail": tail,
-                               "median_width": width, "density_quantiles": density_quantiles, "runs": runs, "options": vars(a)}, indent=2))
+                               "median_width": width, "density_quantiles": density_quantiles, "skipped": skipped, "runs": runs, "options": vars(a)}, indent=2))
     checkpoint.unlink()
     print(f"JSON: {out}")
 
