@@ -106,10 +106,10 @@ def main() -> None:
                      "quantile": {n: float(np.mean(post.samples[n] < true[n])) for n in DEFAULT_ACTION_PARAMS},
                      "density_quantile": float(np.mean(density[1:] < density[0])),
                      "rhat": post.rhat, "acceptance": post.acceptance, "wall_s": time.perf_counter() - t0})
-        i += 1
         save_records(checkpoint, runs, settings)
         print(f"truth {i:2d}: fit {100 * fit.mismatch:.2f} %, inside " + " ".join(f"{n} {'y' if hit[n] else 'N'}" for n in DEFAULT_ACTION_PARAMS)
               + f" (R-hat ≤ {max(post.rhat.values()):.3f}, {time.perf_counter() - t0:.0f} s)", flush=True)
+        i += 1
     coverage = {key: {n: float(np.mean([r[key][n] for r in runs])) for n in DEFAULT_ACTION_PARAMS} for key in ("inside", "inside_hdi")}
     # P(so few hits or fewer | calibrated 90 % intervals)
     tail = {key: {n: float(binom.cdf(round(c * a.truths), a.truths, 0.9)) for n, c in cov.items()} for key, cov in coverage.items()}
