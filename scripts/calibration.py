@@ -24,10 +24,11 @@ were calibrated (binomial, p = 0.9), the same for the 90 % highest-density inter
 width of the equal-tailed interval (fraction of the bound). Each truth's posterior quantile (the
 fraction of samples below it; uniform over truths for a calibrated posterior, Talts S et al.,
 arXiv:1804.06788, 2018) goes to the JSON at ``--out``, with its density quantile: the fraction
-of 512 posterior samples (all, if fewer) whose posterior density (`optim.identify.log_density`) lies below the
-truth's. That too is uniform if calibrated; a truth outside its intervals whose density quantile
-is high sits in a region of high posterior density that the sampler did not visit. ``--seed`` picks the truths and their noise:
-a second seed is an independent check. A truth whose noisy targets are no valid patient record
+of 512 posterior samples (all, if fewer) whose posterior density (`optim.identify.log_density`)
+lies below the truth's. That too is uniform if calibrated; a truth outside its intervals whose
+density quantile is high sits in a region of high posterior density that the sampler did not
+visit. ``--seed`` picks the truths and their noise: a second seed is an independent check. A
+truth whose noisy targets are no valid patient record
 (``lvenv.patients.Patient``: EF ≤ 0 for a prior heart that barely ejects) is skipped, reported
 and listed in the JSON, and the next candidate takes its place. That conditions the data on
 being valid, which the posterior does not know: a small departure, for hearts whose EF lies
