@@ -474,8 +474,8 @@ def log_density(
     x = np.atleast_2d(np.asarray(x, float))
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     inside = np.all((x >= space.lower) & (x <= space.upper), axis=1)
-    sigma, bands = _sigma(patient, noise), resolve_bands(plausibility)
-    venv = make_env(patient, integer("batch", batch, 1), steps_per_beat, max_beats)
+    sigma, bands, batch = _sigma(patient, noise), resolve_bands(plausibility), integer("batch", batch, 1)
+    venv = make_env(patient, batch, steps_per_beat, max_beats)
     venv.reset(seed=0)
     try:
         value = np.concatenate([_log_posterior(venv, x[i: i + batch], patient, sigma, bands)[0] for i in range(0, len(x), batch)])
