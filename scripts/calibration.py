@@ -51,7 +51,7 @@ from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.patients import Patient, builtin
 from lvenv.validation import InputError
 from optim.fit import draw_truths, make_env
-from optim.identify import NOISE, add_sampler_options, log_density, posterior, prior_draws, sampler_options
+from optim.identify import add_sampler_options, measurement_sd, log_density, posterior, prior_draws, sampler_options
 from optim.minimize import minimize
 
 TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
@@ -73,7 +73,6 @@ def main() -> None:
     candidates = SPARE * a.truths
     truths, obs = (prior_draws(candidates, ordered, seed=a.seed) if a.draw == "prior"
                    else draw_truths(candidates, np.random.default_rng(a.seed), base, TARGETS))
-    sigma = np.array([NOISE[k] for k in TARGETS])
     checkpoint = pathlib.Path(a.out + ".ckpt.npz")
     settings = {k: v for k, v in vars(a).items() if k != "out"}
     runs = load_records(checkpoint, settings)
@@ -84,6 +83,7 @@ def main() -> None:
         if i == candidates:
             raise RuntimeError(f"only {len(runs)} of {candidates} candidate truths had valid noisy targets")
         t0 = time.perf_counter()
+        sigma = measurement_sd(dict(zip(TARGETS, map(float, obs[i]))))  # of the true values
         noisy = obs[i] + sigma * np.random.default_rng([a.seed, i]).standard_normal(len(TARGETS))
         try:
             patient = Patient(f"truth {i}", base.heart, dict(zip(TARGETS, map(float, noisy))))

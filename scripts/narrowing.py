@@ -1,6 +1,6 @@
 """How much each added measurement narrows the posterior (issue 11 item 6): on synthetic patients.
 
-    python scripts/narrowing.py [--truths 3] [--walkers 64] [--steps 200] [--chains 64] [--chain-steps 1200] [--out out/identify/narrowing.json]
+    python scripts/narrowing.py [--truths 3] [--volume-sd ML] [--walkers 64] [--steps 200] [--chains 64] [--chain-steps 1200] [--out out/identify/narrowing.json]
 
 Draws ``--truths`` random parameter sets inside the identification bounds whose hearts meet every
 plausibility band (``optim.fit``'s synthetic truths), takes their noise-free steady-state metrics
@@ -14,7 +14,8 @@ About 2–3 minutes per posterior on 2 cores; each finished one is saved to ``--
 Measurement sets: the built-in patients' four targets (EF, ET, IVRT, pulse pressure), then with
 EDV and ESV, with an end-diastolic pressure estimate, with a 20-frame volume trace (cine MRI,
 `Patient.with_volume_trace`), and with both the trace and EDP. Measurement errors are
-`optim.identify.NOISE` (volumes 5 ml per frame, pressures 5 mmHg).
+`optim.identify.NOISE` (volumes 5 % of each measured volume, frames included; pressures 5 mmHg);
+``--volume-sd 5`` gives every volume an error of 5 ml instead.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import Patient, builtin
 from lvenv.archive import load_records, save_records
 from optim.fit import draw_truths
-from optim.identify import add_sampler_options, posterior, sampler_options
+from optim.identify import NOISE, VOLUME_NAMES, add_sampler_options, posterior, sampler_options
 
 BASE = ("EF", "ET", "IVRT", "P_ao_pulse")
 SETS = {
@@ -47,9 +48,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--truths", type=int, default=3)
     add_sampler_options(ap)
+    ap.add_argument("--volume-sd", type=float, default=None, metavar="ML",
+                    help="measurement error of every volume and frame, ml (default: 5 %% of the volume, identify.NOISE)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/identify/narrowing.json")
     a = ap.parse_args()
+    noise = NOISE if a.volume_sd is None else {**NOISE, **dict.fromkeys(VOLUME_NAMES, a.volume_sd)}
     base = builtin("normal")
     metrics = tuple(dict.fromkeys(m for names in SETS.values() for m in names))
     truths, obs = draw_truths(a.truths, np.random.default_rng(a.seed), base, metrics)
@@ -67,7 +71,7 @@ def main() -> None:
                 continue
             patient = Patient(f"truth {i}", base.heart, {k: values[k] for k in targets})
             t0 = time.perf_counter()
-            post = posterior(patient, start=start, seed=a.seed + i, **sampler_options(a))
+            post = posterior(patient, start=start, noise=noise, seed=a.seed + i, **sampler_options(a))
             runs.append({"truth": i, "set": name, "parameters": start, "widths": post.widths(), "rhat": post.rhat,
                          "acceptance": post.acceptance, "failed": post.failed, "wall_s": time.perf_counter() - t0})
             save_records(checkpoint, runs, settings)

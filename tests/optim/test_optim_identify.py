@@ -68,6 +68,31 @@ def test_each_profile_point_is_a_constrained_fit_with_the_chi2_it_reports():
     assert prof.evaluations <= 6 * options.budget
 
 
+def test_volume_errors_are_a_fraction_of_the_measured_volume_and_plain_numbers_stay_absolute():
+    from lvenv.metrics import FRAME_NAMES
+    from lvenv.validation import InputError
+    from optim.identify import NOISE, VOLUME_NAMES, Relative, measurement_sd
+
+    base = builtin("normal")
+    patient = dataclasses.replace(base, targets={**base.targets, "EDV": 60.0, "ESV": 24.0, FRAME_NAMES[5]: 40.0})
+    sigma = dict(zip(patient.targets, measurement_sd(patient.targets)))
+    assert (sigma["EDV"], sigma["ESV"], sigma[FRAME_NAMES[5]]) == pytest.approx((3.0, 1.2, 2.0))
+    assert all(sigma[k] == NOISE[k] for k in base.targets)
+    # each volume read 5 % off its target costs one χ² unit, whatever its size
+    observation = {**patient.targets, "EDV": 63.0, "ESV": 22.8, FRAME_NAMES[5]: 42.0}
+    assert chi2(patient, observation) == pytest.approx(3.0)
+    absolute = {**NOISE, **dict.fromkeys(VOLUME_NAMES, 5.0)}
+    assert chi2(patient, observation, absolute) == pytest.approx((3.0**2 + 1.2**2 + 2.0**2) / 25.0)
+    assert measurement_sd({"EDV": 60.0}, {"EDV": 3 * Relative(0.05)}) == pytest.approx([9.0])
+    assert measurement_sd({"EDV": 60.0}, {"EDV": Relative(0.05) / 5}) == pytest.approx([0.6])
+    with pytest.raises(InputError, match="EDV = 0.0"):
+        measurement_sd({"EDV": 0.0})
+    with pytest.raises(InputError, match="Relative.fraction = -0.05"):
+        Relative(-0.05)
+    with pytest.raises(InputError, match="no measurement error for the target"):
+        measurement_sd({"EDV": 60.0}, {"ESV": 1.0})
+
+
 def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the_likelihood():
     from optim.identify import NOISE, posterior, probability_lower
 

@@ -12,7 +12,7 @@ from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, Parameter
 from lvenv.patients import builtin
 from lvenv.plausibility import resolve
 from lvenv.validation import InputError
-from optim.identify import NOISE, PLAUSIBILITY_SD, _sigma, posterior
+from optim.identify import NOISE, PLAUSIBILITY_SD, measurement_sd, posterior
 from optim.nuts import LogDensity, as_jax, run_nuts
 
 
@@ -52,7 +52,7 @@ def test_log_density_gradient_matches_central_differences_of_its_value():
     # the posterior's bands (so the compiled tangents are the next test's), the atrial one
     # narrowed below the preset's filling pressure so that it is active
     bands = tuple(dataclasses.replace(b, low=0.1, high=0.5) if b.metric == "P_at_mean" else b for b in resolve(True))
-    density = LogDensity(patient, space, _sigma(patient, NOISE), bands, PLAUSIBILITY_SD, np.log(u) - np.log1p(-u), chol, 1000, 60)
+    density = LogDensity(patient, space, measurement_sd(patient.targets, NOISE), bands, PLAUSIBILITY_SD, np.log(u) - np.log1p(-u), chol, 1000, 60)
     directions = rng.standard_normal((3, 6))
     h = 1e-3
     points = np.vstack([np.zeros(6), h * directions, -h * directions])
