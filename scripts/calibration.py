@@ -51,7 +51,7 @@ from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.patients import Patient, builtin
 from lvenv.validation import InputError
 from optim.fit import draw_truths, make_env
-from optim.identify import add_sampler_options, measurement_sd, log_density, posterior, prior_draws, sampler_options
+from optim.identify import add_sampler_options, log_density, measurement_sd, posterior, prior_draws, sampler_options
 from optim.minimize import minimize
 
 TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
