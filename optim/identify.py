@@ -34,9 +34,10 @@ first order (singular value below 1e-3 of the largest), by parameter name.
 :func:`profile`: for each parameter θ_j, a grid over its whole identification bound; at each grid
 value the other parameters are refitted (Raue A et al., Bioinformatics 25:1923, 2009). All
 the constrained fits of all parameters go through one vector env as one cohort
-(:func:`optim.cohort.fit_reports`, CMA-ES per fit, weights w_k = (t_k/σ_k)² so that the env's
-objective is χ² up to a constant factor), and the profile is χ² of each fit's confirmed steady
-state. With Δ = 3.84 (the 95 % point of χ² with one degree of freedom), each parameter is
+(:func:`optim.cohort.fit_reports`, CMA-ES per fit, weights w_k = (t_k/σ_k)² by
+:func:`chi2_weighted` so that the env's objective is χ² up to a constant factor), and the
+profile is χ² of each fit's confirmed steady state. With Δ = 3.84 (the 95 % point of χ² with
+one degree of freedom), each parameter is
 
 * ``identified``: the profile rises more than Δ above its minimum on both sides within the
   bounds, beyond every point that stays below (the 95 % interval is finite);
@@ -129,7 +130,7 @@ from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError, integer, real
 from optim.cohort import CohortOptions, Report, fit_reports
 
-__all__ = ["NOISE", "Relative", "VOLUME_NAMES", "measurement_sd", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
+__all__ = ["NOISE", "Relative", "VOLUME_NAMES", "measurement_sd", "chi2_weighted", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
            "probability_lower", "prior_draws", "log_density", "chi2", "write_report", "SAMPLERS", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
 
 
@@ -189,6 +190,13 @@ def measurement_sd(targets: Mapping[str, float], noise: Mapping[str, float | Rel
     if bad:
         raise InputError(f"measurement error(s) {bad} must be finite and > 0 (a relative error of a zero target is 0)")
     return sigma
+
+
+def chi2_weighted(patient: Patient, noise: Mapping[str, float | Relative] = NOISE) -> Patient:
+    """``patient`` with target weights w_k = (t_k / σ_k)², so that the env's objective (relative
+    errors, weighted) is χ² up to a constant factor."""
+    sigma = measurement_sd(patient.targets, noise)
+    return dataclasses.replace(patient, weights={k: (t / s) ** 2 for (k, t), s in zip(patient.targets.items(), sigma)})
 
 
 def chi2(patient: Patient, observation: Mapping[str, float], noise: Mapping[str, float | Relative] = NOISE) -> float:
@@ -290,9 +298,7 @@ def profile(
     unknown = [n for n in names if n not in space.names]
     if unknown or not names:
         raise InputError(f"names = {list(names)}: profile parameters must be among {space.names}")
-    sigma = measurement_sd(patient.targets, noise)
-    weights = {k: (t / s) ** 2 for (k, t), s in zip(patient.targets.items(), sigma)}
-    weighted = dataclasses.replace(patient, weights=weights)
+    weighted = chi2_weighted(patient, noise)
     unit = np.linspace(0.0, 1.0, grid)
     reports, points = [], {}
     for name in names:

@@ -51,7 +51,7 @@ from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.patients import Patient, builtin
 from lvenv.validation import InputError
 from optim.fit import draw_truths, make_env
-from optim.identify import add_sampler_options, log_density, measurement_sd, posterior, prior_draws, sampler_options
+from optim.identify import add_sampler_options, chi2_weighted, log_density, measurement_sd, posterior, prior_draws, sampler_options
 from optim.minimize import minimize
 
 TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
@@ -91,7 +91,7 @@ def main() -> None:
             print(f"truth {i:2d}: skipped, its noisy targets are no patient record ({error})", flush=True)
             i += 1
             continue
-        venv = make_env(dataclasses.replace(patient, weights={k: (t / s) ** 2 for (k, t), s in zip(patient.targets.items(), sigma)}))
+        venv = make_env(chi2_weighted(patient))
         fit = minimize(venv, "mads", budget=480, seed=a.seed + i, progress=False)
         venv.close()
         post = posterior(patient, start=fit.parameters, seed=a.seed + i, **sampler_options(a))

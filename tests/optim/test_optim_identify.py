@@ -262,7 +262,7 @@ def test_prior_draws_are_the_posteriors_prior_and_carry_their_own_observations()
     from lvenv.identification import DEFAULT_ACTION_PARAMS
     from lvenv.plausibility import resolve
     from optim.fit import make_env
-    from optim.identify import NOISE, _evaluate, log_density, prior_draws
+    from optim.identify import _evaluate, log_density, measurement_sd, prior_draws
 
     patient = builtin("normal")
     x, obs = prior_draws(12, patient, seed=4, batch=16, steps_per_beat=STEPS, max_beats=30)
@@ -276,7 +276,7 @@ def test_prior_draws_are_the_posteriors_prior_and_carry_their_own_observations()
     assert np.all(ok)
     # each env member starts from its previous heart's steady state, so the event times move a little with the history
     # (up to 0.15 σ measured); another heart's observations would be many σ away
-    sigma = np.array([NOISE[k] for k in patient.targets])
+    sigma = measurement_sd(patient.targets)
     assert np.all(np.abs(again - obs) < 0.5 * sigma), (again - obs) / sigma
     assert np.all(log_factor > -8.0), log_factor
     # the posterior's density for a patient whose targets are the first draw's observations: χ² ≈ 0 there
