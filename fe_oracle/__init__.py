@@ -5,13 +5,14 @@ you how to install it if it is missing. See :func:`fe_oracle.api.run` for the in
 :func:`fe_oracle.metrics.beat_metrics` for a beat's EF, volumes and phase durations.
 """
 
-from fe_oracle.api import BACKENDS, run
+from fe_oracle.api import ACTIVATIONS, BACKENDS, run
 from fe_oracle.cases import HF_UNLOADED, N_UNLOADED, Passive, training_condition
 from fe_oracle.material import Guccione
 from fe_oracle.metrics import beat_metrics
 from fe_oracle.result import OracleDidNotConverge, OracleResult
 
 __all__ = [
+    "ACTIVATIONS",
     "BACKENDS",
     "HF_UNLOADED",
     "N_UNLOADED",

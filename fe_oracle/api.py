@@ -17,9 +17,13 @@ from fe_oracle.cases import Passive, resolve_case
 from fe_oracle.material import Guccione
 from fe_oracle.result import OracleResult
 
-__all__ = ["BACKENDS", "DEFAULT_DT", "INSTALL_HINT", "run", "load_backend"]
+__all__ = ["ACTIVATIONS", "BACKENDS", "DEFAULT_DT", "INSTALL_HINT", "run", "load_backend"]
 
 BACKENDS = ("dolfinx", "multielement")
+#: How the dolfinx backend's wall activates: from the eikonal solve (DESIGN §4, the default) or
+#: everywhere at the beat's onset, like the single LO cell (a diagnostic: it separates the spread
+#: of activation from the rest of the congruency gap).
+ACTIVATIONS = ("eikonal", "synchronous")
 #: Default time step (s) per backend.
 DEFAULT_DT = {"dolfinx": 0.005, "multielement": 0.001}
 INSTALL_HINT = "pip install -e '.[fe]'"
@@ -53,6 +57,7 @@ def run(
     arrangement: str | None = None,
     n_elements: int | None = None,
     lo: LOParams | None = None,
+    activation: str = "eikonal",
 ) -> OracleResult:
     """Run the FE oracle on ``geometry`` (unloaded, mm) for ``case``.
 
@@ -63,7 +68,9 @@ def run(
     timings need it), ``beats``
     the number of beats from the documented initial state (LV at passive equilibrium with Pat,
     P_c(0) = Pc0, cells at rest); ``duration`` (s), if given, ends the run earlier. ``max_cuts`` bounds the halvings of a failing step (load or
-    time), ``newton_max_it`` the Newton iterations per solve.
+    time), ``newton_max_it`` the Newton iterations per solve. ``activation``: one of
+    :data:`ACTIVATIONS` (beats of the dolfinx backend only; ``"synchronous"`` sets every
+    activation time to 0 s).
 
     Returns an :class:`~fe_oracle.result.OracleResult`; raises
     :class:`~fe_oracle.result.OracleDidNotConverge` if a step fails after all cuts. Results are
@@ -78,6 +85,7 @@ def run(
     do not apply to it; ``arrangement``, ``n_elements`` and ``lo`` apply to it only.
     """
     choice("backend", backend, BACKENDS)
+    choice("activation", activation, ACTIVATIONS)
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
     mesh_size = real("mesh_size", mesh_size, 0.0, lo_open=True)
@@ -89,6 +97,8 @@ def run(
     cell = CellParams() if cell is None else cell
     passive = isinstance(record, Passive)
     if backend == "multielement":
+        if activation != "eikonal":
+            raise ValueError(f"activation = {activation!r} applies to backend 'dolfinx' only; the multielement backend has no activation sequence")
         return _run_multielement(geometry, record, cell, arrangement, n_elements, lo, dt=dt, beats=int(beats), duration=duration, cache_dir=cache_dir, use_cache=use_cache)
     if (arrangement, n_elements, lo) != (None, None, None):
         raise ValueError(f"arrangement, n_elements and lo apply to backend 'multielement' only, not {backend!r}")
@@ -104,13 +114,16 @@ def run(
     }
     if not passive:
         inputs.update(dt=float(dt), beats=int(beats), duration=duration, cell=cell)
+        if activation != "eikonal":  # the default stays out of the key: earlier entries keep theirs
+            inputs.update(activation=activation)
 
     def compute():
         be = load_backend()
         show = bool(getattr(sys.stderr, "isatty", lambda: False)()) if progress is None else bool(progress)
         if passive:
             return be.run_passive(geometry, material, mesh_size, record.pressures(), max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show)
-        return be.run_beat(geometry, record, cell, material, mesh_size, dt, int(beats), duration=duration, max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show)
+        return be.run_beat(geometry, record, cell, material, mesh_size, dt, int(beats), duration=duration, max_cuts=max_cuts, newton_max_it=newton_max_it, progress=show,
+                           synchronous=activation == "synchronous")
 
     return _cached(inputs, compute, cache_dir, use_cache, mesh_size=float(mesh_size))
 

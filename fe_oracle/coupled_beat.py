@@ -71,7 +71,7 @@ def zero_d_step(p_lv, v, p_c, p_at, dt, circ: Circulation):
 class CoupledBeat:
     """Mutable state of one coupled FE run on an :class:`~fe_oracle.dolfinx_backend.LVModel`."""
 
-    def __init__(self, model, circ: Circulation, cell: CellParams, *, dt, volume_tol, max_cuts, n_sub, log):
+    def __init__(self, model, circ: Circulation, cell: CellParams, *, dt, volume_tol, max_cuts, n_sub, log, synchronous=False):
         self.m, self.circ, self.cell = model, circ, cell
         self.dt_nominal, self.volume_tol, self.max_cuts, self.n_sub, self.log = dt, volume_tol, max_cuts, n_sub, log
         mesh = model.tm.mesh
@@ -81,6 +81,8 @@ class CoupledBeat:
         self._lam_expr = ufl.sqrt(ufl.inner(F * f0, F * f0))
         self.period = float(circ_mod.beat_period(circ))
         self.t_act, _, self.foci = activation_times(model.tm, model.geometry, model.fibres)
+        if synchronous:
+            self.t_act = np.zeros_like(self.t_act)
 
     def stretch(self) -> np.ndarray:
         return interpolate_at_quadrature(self._lam_q, self._lam_expr).copy()

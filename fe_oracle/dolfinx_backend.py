@@ -79,8 +79,10 @@ def run_passive(geometry, material, mesh_size, pressures, *, max_cuts=6, newton_
     return traces, meta, log
 
 
-def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=None, volume_tol=None, max_cuts=4, newton_max_it=25, n_sub=5, progress=False):
+def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=None, volume_tol=None, max_cuts=4, newton_max_it=25, n_sub=5, progress=False,
+             synchronous=False):
     """Coupled active run over ``beats`` beats (or ``duration`` s). Returns (traces, metadata, log).
+    ``synchronous``: every point activates at t = 0 instead of at its eikonal arrival time.
 
     Metadata ``stretch_min``/``stretch_max``: extremes of the fibre stretch over all quadrature
     points and steps; ``stretch_p01``/``stretch_p99``: extremes over steps of its 1st and 99th
@@ -91,7 +93,7 @@ def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=N
     info = model.mesh_info()
     log: list = []
     tol = 1e-4 * info["V0_analytic_ml"] if volume_tol is None else volume_tol
-    beat = CoupledBeat(model, circ, cell, dt=dt, volume_tol=tol, max_cuts=max_cuts, n_sub=n_sub, log=log)
+    beat = CoupledBeat(model, circ, cell, dt=dt, volume_tol=tol, max_cuts=max_cuts, n_sub=n_sub, log=log, synchronous=synchronous)
     beat.initialise()
     t_end = beats * beat.period if duration is None else duration
     rows = [(0.0, beat.v0d, beat.p_lv, beat.p_ao, beat.p_c, beat.p_at)]

@@ -109,6 +109,17 @@ def test_a_few_coupled_active_steps(cache_dir):
     assert all(r["converged"] for r in res.log if "volume_mismatch" in r)
 
 
+def test_synchronous_activation_contracts_every_point_from_the_onset(cache_dir):
+    """The diagnostic ``activation="synchronous"``: every activation time 0, its own cache entry,
+    and with the whole wall contracting at once the isovolumic pressure rises faster."""
+    eikonal = fe_oracle.run(N_UNLOADED, 2, mesh_size=TINY_H, dt=0.01, duration=0.05, cache_dir=cache_dir)
+    synchronous = fe_oracle.run(N_UNLOADED, 2, mesh_size=TINY_H, dt=0.01, duration=0.05, cache_dir=cache_dir, activation="synchronous")
+    assert synchronous.metadata["activation_time_max_s"] == 0.0 < eikonal.metadata["activation_time_max_s"]
+    assert synchronous.metadata["key"] != eikonal.metadata["key"] and not synchronous.from_cache
+    assert synchronous.traces["P_lv"][0] == pytest.approx(eikonal.traces["P_lv"][0])  # same passive start
+    assert np.all(synchronous.traces["P_lv"][1:] > eikonal.traces["P_lv"][1:])
+
+
 def test_closed_loop_steps_conserve_blood_volume(cache_dir):
     """Closed loop (atrial capacitor): V + C P_c + Cat P_at is conserved by the coupled steps."""
     from lvenv.params import Circulation

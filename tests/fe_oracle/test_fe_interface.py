@@ -83,6 +83,10 @@ def test_run_rejects_bad_arguments():
         fe_oracle.run(fe_oracle.N_UNLOADED, backend="abaqus")
     with pytest.raises(ValueError, match="mesh_size"):
         fe_oracle.run(fe_oracle.N_UNLOADED, mesh_size=0.0)
+    with pytest.raises(ValueError, match=r"activation = 'purkinje'.*'eikonal', 'synchronous'"):
+        fe_oracle.run(fe_oracle.N_UNLOADED, 2, activation="purkinje")
+    with pytest.raises(ValueError, match="activation = 'synchronous' applies to backend 'dolfinx' only"):
+        fe_oracle.run(fe_oracle.N_UNLOADED, 2, backend="multielement", activation="synchronous")
 
 
 def _synthetic_beat(onset: float = 0.0):
