@@ -63,7 +63,7 @@ from optim.protocol import Bounds, padded, run
 
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
-    "OracleData", "TrainedLO", "Fidelity", "residuals", "congruency", "run_congruency", "overall", "oracle_data", "fit_passive", "fit_active",
+    "OracleData", "TrainedLO", "Fidelity", "residuals", "congruency", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
     "train", "check_fidelity",
 ]
 
@@ -247,7 +247,8 @@ def _code_version(backend: str) -> dict[str, str | None]:
     return {"lvenv": importlib.metadata.version("lvenv"), "git": commit, "oracle": oracle_cache.code_version(backend)}
 
 
-def _congruency_dict(c_runs: np.ndarray) -> dict[str, float]:
+def congruency_dict(c_runs: np.ndarray) -> dict[str, float]:
+    """C per training condition (keys "1", "2", "3") and overall ("C"), as plain floats."""
     return {**{str(k): float(c) for k, c in zip(CONDITIONS, c_runs)}, "C": float(overall(c_runs))}
 
 
@@ -286,7 +287,7 @@ def train(
     if delay == "always" or (delay == "auto" and not overall(c_runs) < TARGET_C):
         base = lo if lo is not None else dataclasses.replace(lo_passive, gamma=start.gamma)
         lo_s, c_s = fit(dataclasses.replace(base, delay=0.04), (*ACTIVE_NAMES, "delay"))
-        without = None if c_runs is None else _congruency_dict(c_runs)
+        without = None if c_runs is None else congruency_dict(c_runs)
         if c_runs is None or overall(c_s) < overall(c_runs):
             lo, c_runs = lo_s, c_s
     mesh = None if backend != "dolfinx" else float(oracle_options.get("mesh_size", 6.0))
@@ -296,7 +297,7 @@ def train(
         "code_version": _code_version(backend), "budget": budget, "batch": batch, "seed": seed, "steps_per_beat": steps_per_beat,
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
-    return TrainedLO(geometry, lo, data.cell, _congruency_dict(c_runs), without, rmse, provenance)
+    return TrainedLO(geometry, lo, data.cell, congruency_dict(c_runs), without, rmse, provenance)
 
 
 #: Fidelity targets and their tolerance: (kind, bound) with kind "abs" (internal units) or "rel".

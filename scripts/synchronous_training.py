@@ -57,7 +57,7 @@ def main() -> None:
             c3 = congruency.run_congruency(data, [table3], 1000)[0]
             summary[f"{name}/{activation}"] = {
                 "C": trained.congruency, "C_without_delay": trained.congruency_without_delay,
-                "C_table3": {**{str(k): float(c) for k, c in zip(congruency.CONDITIONS, c3)}, "C": float(congruency.overall(c3))},
+                "C_table3": congruency.congruency_dict(c3),
                 "trained": dataclasses.asdict(trained.lo), "mesh_size_mm": args.mesh_size, "cell_changes": changes,
                 "activation_time_max_s": data.beats[congruency.CONDITIONS[0]].metadata["activation_time_max_s"],
                 "training_s": t_train, "oracle_s": t_oracle,

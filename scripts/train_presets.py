@@ -45,7 +45,7 @@ def main() -> None:
         c3 = congruency.run_congruency(data, [table3], 1000)[0]
         summary[name] = {
             "C": trained.congruency, "C_without_delay": trained.congruency_without_delay,
-            "C_table3": {**{str(k): float(c) for k, c in zip(congruency.CONDITIONS, c3)}, "C": float(congruency.overall(c3))},
+            "C_table3": congruency.congruency_dict(c3),
             "trained": dataclasses.asdict(trained.lo), "table3": dataclasses.asdict(table3),
             "passive_rmse_ml": trained.passive_rmse_ml, "training_s": t_train, "oracle_read_s": t_oracle,
             "oracle_run_s": {k: r.metadata.get("total_s") for k, r in [("passive", data.passive), *((str(k), r) for k, r in data.beats.items())]},
