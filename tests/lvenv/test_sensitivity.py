@@ -13,45 +13,58 @@ METRICS = ("EF", "EDV", "ESV", "IVCT", "ET", "IVRT", "P_lv_peak", "P_ao_sys", "P
 WRT = (*DEFAULT_ACTION_PARAMS, "Pat", "HR")
 
 
-def _random_hearts():
+def _random_hearts(n=20):
+    """``n`` hearts around N, HF and an open-loop N in turn, each action parameter scaled by a
+    factor in [0.8, 1.25] and the heart rate drawn in 55–85 /min."""
     rng = np.random.default_rng(11)
     hearts = []
-    for base in (presets.normal(), presets.heart_failure(), presets.normal().replace(closed_loop=0.0, Pat=1.2)):
+    for i in range(n):
+        base = (presets.normal(), presets.heart_failure(), presets.normal().replace(closed_loop=0.0, Pat=1.2))[i % 3]
         factors = rng.uniform(0.8, 1.25, len(DEFAULT_ACTION_PARAMS))
         hearts.append(base.replace(**{n: float(base.get(n)) * f for n, f in zip(DEFAULT_ACTION_PARAMS, factors)}, HR=float(rng.uniform(55, 85))))
     return hearts
 
 
-def _central_differences(heart, wrt, metrics, rel=1e-6):
-    """(m, k) central differences of the steady-state metrics, one batched simulation."""
+def _central_differences(hearts, wrt, metrics, rel=1e-6):
+    """Central differences of the steady-state metrics at steps h and 2h, each (n, m, k), from
+    one batched simulation of all hearts."""
     perturbed, steps = [], []
-    for name in wrt:
-        value = float(heart.get(name))
-        step = rel * max(abs(value), 1e-3)
-        steps.append(step)
-        perturbed += [heart.replace(**{name: value + step}), heart.replace(**{name: value - step})]
+    for heart in hearts:
+        for name in wrt:
+            value = float(heart.get(name))
+            step = rel * max(abs(value), 1e-3)
+            steps.append(step)
+            perturbed += [heart.replace(**{name: value + f * step}) for f in (1.0, -1.0, 2.0, -2.0)]
     sim = lvenv.simulate(perturbed, steps_per_beat=STEPS, rtol=1e-12, max_beats=3000, traces=False)
     assert set(sim.status) == {"ok"}
-    values = np.array([[sim.metrics[m][2 * j] - sim.metrics[m][2 * j + 1] for j in range(len(wrt))] for m in metrics])
-    return values / (2.0 * np.array(steps))[None, :]
+    values = np.stack([np.asarray(sim.metrics[m]).reshape(len(hearts), len(wrt), 4) for m in metrics], axis=1)  # (n, m, k, 4)
+    h = np.array(steps).reshape(len(hearts), 1, len(wrt))
+    return (values[..., 0] - values[..., 1]) / (2.0 * h), (values[..., 2] - values[..., 3]) / (4.0 * h)
 
 
-def _assert_close(ad, fd, where, rtol=2e-3):
-    """Each entry within rtol of the difference quotient, or within rtol of its metric's largest
-    derivative (the derivatives of one metric share its units; a near-zero entry is only as exact
-    as the largest one's round-off)."""
-    scale = np.max(np.abs(fd), axis=1, keepdims=True)
-    bad = np.abs(ad - fd) > rtol * np.maximum(np.abs(fd), 1e-2 * scale)
-    assert not bad.any(), f"{where}: autodiff {ad[bad]} against differences {fd[bad]} at (metric, parameter) {np.argwhere(bad).tolist()}"
+def _relative_error(ad, fd):
+    """|ad − fd| relative to |fd|, or to 1e-2 of its metric's largest derivative at that heart
+    where that is larger (the derivatives of one metric share its units; a near-zero entry is
+    only as exact as the largest one's round-off)."""
+    scale = np.max(np.abs(fd), axis=-1, keepdims=True)
+    return np.abs(ad - fd) / np.maximum(np.abs(fd), 1e-2 * scale)
 
 
 def test_derivatives_match_central_differences_closed_and_open_loop_and_in_a_batch():
+    """Over 20 random hearts (N, HF, open loop; heart rate and atrial pressure among the
+    parameters) every derivative agrees with the central difference to 1e-4 relative wherever
+    the metric is smooth at the difference's scale: where the differences at steps h and 2h agree
+    to 1e-4 (across a kink, where a valve event crosses an integrator step, they differ by
+    O(1)). Such points are rare, so at most 2 % of the entries may be set aside."""
     hearts = _random_hearts()
     batch = lvenv.jacobian(hearts, wrt=WRT, metrics=METRICS, steps_per_beat=STEPS, rtol=1e-12, max_beats=3000)
-    assert batch.values.shape == (3, len(METRICS), len(WRT)) and list(batch.status) == ["ok"] * 3
-    for i, heart in enumerate(hearts):
-        fd = _central_differences(heart, WRT, METRICS)
-        _assert_close(batch.values[i], fd, f"heart {i} (closed_loop = {float(heart.circulation.closed_loop):g})")
+    assert batch.values.shape == (len(hearts), len(METRICS), len(WRT)) and list(batch.status) == ["ok"] * len(hearts)
+    fd, fd_2h = _central_differences(hearts, WRT, METRICS)
+    smooth = _relative_error(fd_2h, fd) < 1e-4
+    assert smooth.mean() > 0.98, f"{np.sum(~smooth)} of {smooth.size} entries are not smooth at the difference's scale"
+    error = _relative_error(batch.values, fd)
+    bad = smooth & (error > 1e-4)
+    assert not bad.any(), f"autodiff {batch.values[bad]} against differences {fd[bad]} at (heart, metric, parameter) {np.argwhere(bad).tolist()}"
     single = lvenv.jacobian(hearts[2], wrt=WRT, metrics=METRICS, steps_per_beat=STEPS, rtol=1e-12, max_beats=3000)
     np.testing.assert_allclose(single.values, batch.values[2], rtol=1e-9, atol=1e-12)
     assert single["EF", "tau2"] == pytest.approx(batch.values[2, 0, 0])
@@ -62,8 +75,8 @@ def test_the_closed_loop_volume_constraint_matters():
     volume row the system would be singular, and a wrong row gives a wrong sign or size."""
     heart = presets.normal()
     jac = lvenv.jacobian(heart, wrt=WRT, metrics=METRICS, steps_per_beat=STEPS, rtol=1e-12, max_beats=3000)
-    fd = _central_differences(heart, ("Cat", "C"), ("EDV",))
-    _assert_close(np.array([[jac["EDV", "Cat"], jac["EDV", "C"]]]), fd, "normal")
+    fd = _central_differences([heart], ("Cat", "C"), ("EDV",))[0][0]
+    assert np.all(_relative_error(np.array([[jac["EDV", "Cat"], jac["EDV", "C"]]]), fd) < 1e-4), (jac["EDV", "Cat"], jac["EDV", "C"], fd)
     assert np.all(np.abs(fd) > 1e-3)
 
 
