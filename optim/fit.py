@@ -46,14 +46,17 @@ DEFAULT_OPTIONS: dict[str, dict[str, Any]] = {
     "mads": {},
     "cma": {},
     "kriging": {"n_restarts": 0, "n_candidates": 1024},  # trust region + Thompson sampling (optim.kriging)
+    # optim.lm.fit_lm: its own budget, since each of its evaluations is a steady state and its tangents
+    "lm": {"budget": 120, "starts": 4},
 }
 
 
 @dataclasses.dataclass(frozen=True)
 class FitRow(MinimizeResult):
-    """One (patient, method) fit: the `MinimizeResult` of `minimize`, plus the evaluations and
-    wall time (s) until the mismatch first fell below 3 % (None if never), and the env's one-off
-    JIT compilation `compile_time` (s; shared by all methods of the patient, not in wall_time)."""
+    """One (patient, method) fit: the `MinimizeResult` of `minimize` (of `optim.lm.fit_lm` for
+    ``"lm"``), plus the evaluations and wall time (s) until the mismatch first fell below 3 % (None
+    if never), and the one-off JIT compilation `compile_time` (s, not in wall_time): the env's,
+    shared by all env methods of the patient, or for ``"lm"`` that of a short warm-up run of it."""
 
     evaluations_to_3pct: int | None
     wall_time_to_3pct: float | None
@@ -100,22 +103,44 @@ def fit_patients(
     plausibility: bool | Sequence[Band] = True,
 ) -> list[FitRow]:
     """Fit every patient with every method; rows in (patient, method) order. See module docstring.
-    ``plausibility``: the objective's physiological bands (:mod:`lvenv.plausibility`)."""
+    ``plausibility``: the objective's physiological bands (:mod:`lvenv.plausibility`).
+
+    ``"lm"`` (:func:`optim.lm.fit_lm`) does not use the env: it runs at ``steps_per_beat`` fixed
+    steps with its own budget and starts (`DEFAULT_OPTIONS`; an ``options["lm"]`` budget overrides
+    it), after a warm-up run of 2 evaluations a start that compiles the same batched functions,
+    so its wall time is warm like the others'."""
     rows: list[FitRow] = []
     for p in patients:
         patient = _patient(p)
-        venv = make_env(patient, num_envs, steps_per_beat, plausibility=plausibility)
-        compile_time = warm_up(venv)
+        venv = make_env(patient, num_envs, steps_per_beat, plausibility=plausibility) if set(methods) - {"lm"} else None
+        compile_time = warm_up(venv) if venv is not None else 0.0
         for method in methods:
             opts = {**DEFAULT_OPTIONS.get(method, {}), **dict((options or {}).get(method, {}))}
-            res = minimize(venv, method, budget=budget, seed=seed, progress=progress, **opts)
+            if method == "lm":
+                res, compiled = _fit_lm(patient, seed, steps_per_beat, plausibility, {"budget": budget, **opts})
+            else:
+                res, compiled = minimize(venv, method, budget=budget, seed=seed, progress=progress, **opts), compile_time
             evals, wall = res.history.to_target(0.03)
             fields = {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
-            rows.append(FitRow(**fields, evaluations_to_3pct=evals, wall_time_to_3pct=wall, compile_time=compile_time))
-        venv.close()
+            rows.append(FitRow(**fields, evaluations_to_3pct=evals, wall_time_to_3pct=wall, compile_time=compiled))
+        if venv is not None:
+            venv.close()
     if out_dir is not None:
         plot_fits(rows, {_patient(p).name: _patient(p) for p in patients}, out_dir, steps_per_beat)
     return rows
+
+
+def _fit_lm(patient: Patient, seed: int, steps_per_beat: int, plausibility: bool | Sequence[Band],
+            options: Mapping[str, Any]) -> tuple[MinimizeResult, float]:
+    """`optim.lm.fit_lm` after a warm-up run (2 evaluations a start, the same batch shapes);
+    returns its result and the warm-up's wall time (s)."""
+    from optim.lm import fit_lm
+
+    settings = {"seed": seed, "steps_per_beat": steps_per_beat, "plausibility": plausibility, **options}
+    start = time.perf_counter()
+    fit_lm(patient, **{**settings, "budget": 2 * settings["starts"]})
+    compiled = time.perf_counter() - start
+    return fit_lm(patient, **settings), compiled
 
 
 def plot_fits(rows: Sequence[FitRow], patients: Mapping[str, Patient], out_dir: str | Path,

@@ -1,4 +1,5 @@
-"""Fit the built-in patients with MADS, CMA-ES and kriging; print the table (mmHg, ms).
+"""Fit the built-in patients with MADS, CMA-ES, kriging and least squares with autodiff
+Jacobians (lm); print the table (mmHg, ms).
 
     python scripts/fit_patients.py [--budget 480] [--num-envs 16] [--out out/fit]
     python scripts/fit_patients.py --synthetic 10 --method cma     # synthetic recovery
@@ -50,9 +51,12 @@ def print_fits(rows, plausibility: bool = True) -> None:
               + f" | {100 * r.mismatch:10.2f} | {r.evaluations:5d} | {r.wall_time:6.1f} | {to3}")
     print("OUT: outside " + ", ".join(b.describe() for b in resolve(True)) + " (lvenv.plausibility); in the objective: "
           + ", ".join(b.metric for b in resolve(plausibility)))
-    compile_times = {r.patient: r.compile_time for r in rows}
-    print("\none-off JIT compilation per patient env (s, not in wall): "
-          + ", ".join(f"{k} {v:.1f}" for k, v in compile_times.items()))
+    compile_times = {(r.patient, "lm" if r.method == "lm" else "env"): r.compile_time for r in rows}
+    print("\none-off JIT compilation (s, not in wall; the env's per patient, lm's warm-up run): "
+          + ", ".join(f"{p} {kind} {v:.1f}" for (p, kind), v in compile_times.items()))
+    if any(r.method == "lm" for r in rows):
+        print("lm: each evaluation is a steady state and its tangents (optim.lm), at the fixed steps per beat; "
+              "budget and starts: optim.fit.DEFAULT_OPTIONS")
     by = {(r.patient, r.method): r for r in rows}
     if {"normal", "heart_failure"} <= {r.patient for r in rows}:
         print("\nHF / N fitted parameter ratio per method:")
@@ -65,8 +69,8 @@ def print_fits(rows, plausibility: bool = True) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--patients", nargs="+", default=["normal", "heart_failure"])
-    ap.add_argument("--methods", nargs="+", default=["mads", "cma", "kriging"])
-    ap.add_argument("--budget", type=int, default=None, help="evaluations per fit (480; synthetic: 1600)")
+    ap.add_argument("--methods", nargs="+", default=["mads", "cma", "kriging", "lm"])
+    ap.add_argument("--budget", type=int, default=None, help="evaluations per fit of the env methods (480; synthetic: 1600); lm has its own (optim.fit.DEFAULT_OPTIONS)")
     ap.add_argument("--num-envs", type=int, default=16)
     ap.add_argument("--steps-per-beat", type=int, default=1000, help="500 is faster; IVRT then moves by 1–2 %%")
     ap.add_argument("--seed", type=int, default=0)

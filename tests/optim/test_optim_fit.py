@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import re
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,29 @@ def test_script_prints_the_table_in_mmhg_and_ms(rows, capsys):
     assert "P_at mean (mmHg)" in text and "EDP (mmHg)" in text and "P_at_mean 4–25 mmHg" in text, "the plausibility columns"
     assert "60.0" in text  # EF target of the normal patient, in %
     assert "300.0" in text  # ET target, in ms
+
+
+def test_lm_rows_sit_beside_the_env_methods_warm_and_as_fit_lm_alone_gives_them(capsys):
+    """`fit_patients(..., methods=("lm",))`: the least-squares fit in the same table, with its own
+    budget; the warm-up run that takes its compilation out of the wall time leaves the result
+    bit-identical to `fit_lm` called alone."""
+    from optim.lm import fit_lm
+
+    options = {"lm": {"budget": 6, "starts": 2}}
+    (row,) = fit_patients(("normal",), ("lm",), num_envs=8, budget=64, seed=0, steps_per_beat=1000, options=options)
+    alone = fit_lm("normal", budget=6, starts=2, seed=0, steps_per_beat=1000)
+    assert row.method == "lm" and row.evaluations == alone.evaluations <= 6
+    np.testing.assert_array_equal(row.history.x, alone.history.x)
+    np.testing.assert_array_equal(row.history.f, alone.history.f)
+    assert row.mismatch < row.history.mismatch[0], "it improved on the patient's own values (start 0's first point)"
+    assert row.compile_time > 0 and row.wall_time > 0
+    spec = importlib.util.spec_from_file_location("fit_patients_script", SCRIPT)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    script.print_fits([row])
+    text = capsys.readouterr().out
+    assert re.search(r"^normal +lm +\d", text, re.M), "the lm row of the parameter table"
+    assert "normal lm " in text and "lm: each evaluation is a steady state and its tangents" in text, "its compilation and footnote"
 
 
 def test_targets_move_less_along_the_null_directions_than_across_them():
