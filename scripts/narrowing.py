@@ -79,8 +79,9 @@ POOL_FREE = ("seed", "sets", "truths", "out", "pool")
 
 def pool(paths: list[str]) -> None:
     """Print the table over the truths of earlier runs' JSON files, and each truth's narrowing
-    of every parameter by each set (their median is not the ratio of the medians). The runs
-    must share every option but :data:`POOL_FREE` (the sampler's, the volume error)."""
+    of every parameter by each set (their median is not the ratio of the medians). Only the
+    options in :data:`POOL_FREE` may differ between the runs; the sampler's and the volume
+    error must be the same, or the run that differs is refused."""
     runs, first = [], None
     for k, path in enumerate(paths):
         record = json.loads(pathlib.Path(path).read_text())

@@ -13,12 +13,12 @@ METRICS = ("EF", "EDV", "ESV", "IVCT", "ET", "IVRT", "P_lv_peak", "P_ao_sys", "P
 WRT = (*DEFAULT_ACTION_PARAMS, "Pat", "HR")
 
 
-def _random_hearts(n=20):
-    """``n`` hearts around N, HF and an open-loop N in turn, each action parameter scaled by a
-    factor in [0.8, 1.25] and the heart rate drawn in 55–85 /min."""
+def _random_hearts(count=20):
+    """``count`` hearts around N, HF and an open-loop N in turn, each action parameter scaled by
+    a factor in [0.8, 1.25] and the heart rate drawn in 55–85 /min."""
     rng = np.random.default_rng(11)
     hearts = []
-    for i in range(n):
+    for i in range(count):
         base = (presets.normal(), presets.heart_failure(), presets.normal().replace(closed_loop=0.0, Pat=1.2))[i % 3]
         factors = rng.uniform(0.8, 1.25, len(DEFAULT_ACTION_PARAMS))
         hearts.append(base.replace(**{n: float(base.get(n)) * f for n, f in zip(DEFAULT_ACTION_PARAMS, factors)}, HR=float(rng.uniform(55, 85))))
