@@ -51,12 +51,16 @@ SETS = {
 SET_OPTIONS = {"volumes": "+ EDV, ESV", "edp": "+ EDP", "trace": "+ volume trace", "trace-edp": "+ trace, EDP"}
 
 
+def _by_truth(runs: list[dict]) -> tuple[dict, list]:
+    """Each run's widths by (truth, set), and the truths in order."""
+    return {(r["truth"], r["set"]): r["widths"] for r in runs}, sorted({r["truth"] for r in runs})
+
+
 def print_table(runs: list[dict]) -> dict[str, dict[str, float]]:
     """Print, per measurement set and parameter, the median width over the truths that ran the
     set and the narrowing: the four targets' median width over the same truths divided by it.
     Returns the medians."""
-    width = {(r["truth"], r["set"]): r["widths"] for r in runs}
-    truths = sorted({r["truth"] for r in runs})
+    width, truths = _by_truth(runs)
     median = {}
     print(f"\nmedian 90 % interval width over {len(truths)} truths (fraction of the bound; × = narrowing: the four targets' median "
           "width over the same truths / this one; in brackets the number of truths where a set ran on fewer)")
@@ -91,8 +95,7 @@ def pool(paths: list[str]) -> None:
             differ = sorted(key for key in first.keys() | options.keys() if first.get(key) != options.get(key))
             raise SystemExit(f"--pool: {path} was run with other settings ({', '.join(f'{key} = {options.get(key)!r} against {first.get(key)!r}' for key in differ)})")
         runs += [{**r, "truth": (k, r["truth"])} for r in record["runs"]]
-    truths = sorted({r["truth"] for r in runs})
-    width = {(r["truth"], r["set"]): r["widths"] for r in runs}
+    width, truths = _by_truth(runs)
     print_table(runs)
     print("\nper-truth narrowing against the four targets (median over the truths that ran the set)")
     for name in SETS:

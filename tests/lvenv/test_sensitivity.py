@@ -17,9 +17,10 @@ def _random_hearts(count=20):
     """``count`` hearts around N, HF and an open-loop N in turn, each action parameter scaled by
     a factor in [0.8, 1.25] and the heart rate drawn in 55–85 /min."""
     rng = np.random.default_rng(11)
+    bases = (presets.normal(), presets.heart_failure(), presets.normal().replace(closed_loop=0.0, Pat=1.2))
     hearts = []
     for i in range(count):
-        base = (presets.normal(), presets.heart_failure(), presets.normal().replace(closed_loop=0.0, Pat=1.2))[i % 3]
+        base = bases[i % 3]
         factors = rng.uniform(0.8, 1.25, len(DEFAULT_ACTION_PARAMS))
         hearts.append(base.replace(**{n: float(base.get(n)) * f for n, f in zip(DEFAULT_ACTION_PARAMS, factors)}, HR=float(rng.uniform(55, 85))))
     return hearts
