@@ -4,19 +4,19 @@ Solves for the first arrival time t (s) of a front started at t = 0 on the sourc
 
     √(∇t · D ∇t) = 1,      D = Σ v_i² e_i ⊗ e_i   (conduction velocities v_i along an orthonormal basis e_i)
 
-The travel time of a straight segment d through a tetrahedron is |d|_M = √(dᵀ M d) with
+The travel time of a straight segment d through a tetrahedron is ‖d‖_M = √(dᵀ M d) with
 M = D⁻¹. The discrete solution is the fixed point of the Hopf–Lax update: with t linear on each
-face, the time of vertex x is
+face, the time of vertex x is::
 
     t(x) = min over the tetrahedra K ∋ x of  min over points y of the opposite face of K
-           [ t(y) + |x − y|_M ]
+           [ t(y) + ‖x − y‖_M ]
 
 (the fast iterative method's local solver, Fu, Kirby & Whitaker 2013, SIAM J Sci Comput
 35:C473). The minimum over the face is exact: for the triangle x₁x₂x₃ with E = [x₂ − x₁,
 x₃ − x₁], w = x − x₁, g = (t₂ − t₁, t₃ − t₁), A = EᵀME, b = EᵀMw, c = wᵀMw, the stationary
-point of gᵀa + |w − Ea|_M has
+point of gᵀa + ‖w − Ea‖_M has::
 
-    s = |w − Ea|_M = √((c − bᵀA⁻¹b) / (1 − gᵀA⁻¹g)),     a = A⁻¹(b − s g)
+    s = ‖w − Ea‖_M = √((c − bᵀA⁻¹b) / (1 − gᵀA⁻¹g)),     a = A⁻¹(b − s g)
 
 (valid if gᵀA⁻¹g < 1 and a lies in the triangle); otherwise the minimum lies on an edge (the
 same formula in one dimension) or at a vertex. The objective is convex, so the smallest valid

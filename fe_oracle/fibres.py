@@ -2,7 +2,7 @@
 
 1. Transmural coordinate φ (0 on the endocardium, 1 on the epicardium): the P2 solution of
    Laplace's equation Δφ = 0 with those Dirichlet values, zero flux through the base.
-2. Local basis at each point: transmural e_t = ∇φ/|∇φ|; longitudinal e_l = the long axis ẑ
+2. Local basis at each point: transmural e_t = ∇φ/‖∇φ‖; longitudinal e_l = the long axis ẑ
    (apex → base) projected onto the plane ⊥ e_t; circumferential e_c = e_l × e_t
    (counter-clockwise seen from the base).
 3. Helix angle α(φ) = α_endo + (α_epi − α_endo) φ, α_endo = +60°, α_epi = −60°::

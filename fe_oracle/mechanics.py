@@ -129,7 +129,7 @@ class ActiveTension:
     """UFL active fibre tension of the Land 2017 model, implicit in the current stretch λ.
 
     With Δλ = λ − λₙ over a step dt and the exact solution of dζ/dt = A dλ/dt − c ζ for a
-    constant rate (A, c read off :func:`lvenv.cell.derivatives`, see :mod:`fe_oracle.active`)::
+    constant rate (A, c read off :func:`lvenv.cell.derivatives`)::
 
         ζ(λ)  = ζₙ e^(−c dt) + A Δλ (1 − e^(−c dt)) / (c dt)
         Ta(λ) = Sa h(λ) (Tref/rs) [S* (ζs(λ) + 1) + W* ζw(λ)]          (kPa)

@@ -52,7 +52,7 @@ __all__ = ["FE_ONLY_METADATA", "MULTIELEMENT_METADATA", "NEWTON_TOL", "arrangeme
 FE_ONLY_METADATA = ("cells", "dofs", "V0_mesh_ml", "setup_s", "fe_solves", "quadrature_points", "stretch_p01", "stretch_p99", "volume_tol_ml")
 #: Metadata keys only this backend has.
 MULTIELEMENT_METADATA = ("arrangement", "n_elements", "spread", "lo", "constraint_residual_kPa")
-#: Series equal-pressure tolerance max_ξ |P_ξ − P| (kPa).
+#: Series equal-pressure tolerance max_ξ abs(P_ξ − P) (kPa).
 NEWTON_TOL = 1e-10
 
 

@@ -188,7 +188,7 @@ def jacobian(y, ca, lam, p: CellParams, k: Rates) -> tuple[list[list], list, lis
     """Partials of :func:`derivatives` at fixed inputs: (∂f/∂y as 6 × 6 rows, ∂f/∂λ, ∂f/∂(dλ/dt)).
 
     Structural zeros are the Python float ``0.0`` (the ROS2 LU skips them). At the clamps and
-    |ζw| the one-sided derivative of the branch the state selects is used, as ``jax.jacfwd`` does.
+    abs(ζw) the one-sided derivative of the branch the state selects is used, as ``jax.jacfwd`` does.
     """
     c, b, s, w, zs, zw = (y[i] for i in range(N_STATES))
     zero = [0.0] * N_STATES

@@ -18,7 +18,7 @@ superellipse with exponent ``2e`` (our reading of the paper's ``e``)::
     r(θ) = a |cos θ|^(1/e),   z(θ) = b sgn(sin θ) |sin θ|^(1/e),   θ ∈ [−90°, C0].
 
 ``e = 1`` gives an ellipse (a sphere when a = b); ``e = 0.5`` gives the straight line
-r/a + |z|/b = 1, i.e. a cone. Both surfaces share the centre (z = 0) and the basal plane.
+``r/a + |z|/b = 1``, i.e. a cone. Both surfaces share the centre (z = 0) and the basal plane.
 
 Outer surface (a_o, b_o) from Rb, Z, C0::
 
@@ -36,7 +36,7 @@ Unloaded cavity volume, the solid of revolution of the inner meridian below the 
 
     V0 = π ∫_{−b_i}^{z_base} r_i(z)² dz,   r_i(z) = a_i (1 − (|z|/b_i)^(2e))^(1/(2e))
 
-Values (this reading): N unloaded V0 = 35.81 ml, HF unloaded V0 = 40.83 ml (README, "Geometry").
+Values (this reading): N unloaded V0 = 35.81 ml, HF unloaded V0 = 40.83 ml (docs, "The model").
 """
 
 from __future__ import annotations

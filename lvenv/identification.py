@@ -40,6 +40,7 @@ class Bound:
     doc: str
 
 
+#: Physical bounds, unit, log flag and meaning of each identification parameter.
 ACTION_BOUNDS: dict[str, Bound] = {
     "tau2": Bound(0.05, 0.6, "s", True, "Ca transient decay time constant"),
     "Sa": Bound(0.2, 4.0, "1", True, "contraction efficiency"),
@@ -49,6 +50,7 @@ ACTION_BOUNDS: dict[str, Bound] = {
     "Cat": Bound(1.0, 200.0, "ml/kPa", True, "atrial compliance"),
 }
 
+#: The parameters under identification by default: τ2, Sa, R2, R3, C, Cat.
 DEFAULT_ACTION_PARAMS = tuple(ACTION_BOUNDS)
 
 #: Human resting targets at 60 bpm used for the reachability check (internal units).

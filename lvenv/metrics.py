@@ -52,6 +52,7 @@ N_FRAMES = 20
 #: Names of the volume-trace metrics: ``V_frame_00`` (at the onset) … ``V_frame_19``.
 FRAME_NAMES = tuple(f"V_frame_{j:02d}" for j in range(N_FRAMES))
 
+#: Every metric by name: units, display units, observation bounds and target range.
 METRICS: dict[str, Metric] = {
     m.name: m
     for m in (

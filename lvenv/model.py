@@ -142,7 +142,7 @@ def jacobian(ca, y, p: ModelParams, k: cell.Rates, lookahead=None) -> list[list]
         cell rows  = J_cell + ∂f/∂λ (μ1/V0) e_V + ∂f/∂(dλ/dt) (μ1/V0) (row of dV/dt)
 
     Structural zeros are the Python float ``0.0`` so that the unrolled LU can skip them. At the
-    kinks (clamps, |ζw|) the one-sided derivative of the branch selected by the state is used,
+    kinks (clamps, abs(ζw)) the one-sided derivative of the branch selected by the state is used,
     matching ``jax.jacfwd``; with ``lookahead=None`` so are the valves. Checked against
     forward-mode AD in the tests.
 

@@ -242,7 +242,7 @@ def _element_pressures(cells, v_el, p: ElementParams, k: cell.Rates):
 
 
 def _algebraic(kind: str, p: ElementParams, k: cell.Rates, cells, v, v_el, p_lv, tol):
-    """(V_ξ, P, residual max_ξ |P_ξ − P| (B,), Newton iterations) at differential states (cells, V).
+    """(V_ξ, P, residual max_ξ abs(P_ξ − P) (B,), Newton iterations) at differential states (cells, V).
 
     Parallel: explicit. Series: Newton from the guess (``v_el``, ``p_lv``) until the residual is
     below ``tol`` (kPa) for every member, at most 20 iterations.
@@ -399,7 +399,7 @@ def run(p: ElementParams, state0: State, newton_tol, *, kind: str, steps: int, b
     Returns a dict: ``state`` (final), ``metrics`` (last beat, masked to NaN unless usable),
     ``status`` (codes of :mod:`lvenv.status`; a member whose equal-pressure Newton did not
     reach ``newton_tol`` left the constraint manifold and is ``diverged``), ``residual`` (max
-    over the run of max_ξ |P_ξ − P|, kPa), ``newton_iterations`` (per member), ``stretch``
+    over the run of max_ξ abs(P_ξ − P), kPa), ``newton_iterations`` (per member), ``stretch``
     ((min, max) of λ_ξ over elements and steps) and, when ``record``, ``traces``: V, P_lv,
     P_ao, P_c, P_at and the residual, each ``(beats, steps + 1, B)``.
     """
@@ -468,7 +468,7 @@ class MultiElementResult:
 
     ``metrics``: last beat (internal units, :data:`lvenv.metrics.METRIC_NAMES`; NaN unless the
     status is usable). ``traces``: ``t`` (s, from the first beat's onset), ``V`` (ml), ``P_lv``,
-    ``P_ao``, ``P_c``, ``P_at`` (kPa) and ``residual`` (max_ξ |P_ξ − P|, kPa; 0 in parallel)
+    ``P_ao``, ``P_c``, ``P_at`` (kPa) and ``residual`` (max_ξ abs(P_ξ − P), kPa; 0 in parallel)
     over all beats, ``beats · steps_per_beat + 1`` samples. ``constraint_residual``: its maximum
     over the run. ``stretch``: (min, max) of λ_ξ over elements and steps. ``final``: the final :class:`State`
     (cells in ζ̃ form, member axis last).
@@ -503,7 +503,7 @@ def simulate(
         beats: beats to run; the metrics are the last beat's.
         steps_per_beat: ROS2 steps per cardiac cycle (h = 60 / HR / steps_per_beat s).
         traces: record the traces of every beat.
-        newton_tol: series only: Newton tolerance on max_ξ |P_ξ − P| (kPa).
+        newton_tol: series only: Newton tolerance on max_ξ abs(P_ξ − P) (kPa).
 
     Raises:
         ValueError: a parameter or setting outside its allowed range (names field and value).

@@ -28,7 +28,9 @@ HF_UNLOADED = Geometry(Rb=38.0, L=10.0, Z=49.0, H=7.7, e=0.66, C0=-64.0)
 N_END_DIASTOLE = Geometry(Rb=38.0, L=8.2, Z=52.0, H=11.0, e=0.76, C0=-61.0)
 HF_END_DIASTOLE = Geometry(Rb=42.0, L=8.2, Z=49.0, H=6.0, e=0.71, C0=-78.0)
 
+#: The paper's Table 3 LO parameters (N and HF geometry), ``lo="table3"``.
 N_LO = LOParams(mu1=0.191, mu2=0.183, gamma=4.97, alpha=0.640, beta=1.39, a=1.70, b=-1.41, c=1.64)
+#: See :data:`N_LO`.
 HF_LO = LOParams(mu1=0.190, mu2=0.173, gamma=5.17, alpha=0.571, beta=1.47, a=1.77, b=-1.47, c=1.61)
 
 #: Table 2: k -> (Pat kPa, R3 kPa·s/ml, C ml/kPa); R1 = 0.0015 kPa·s/ml and R2 = 0 throughout.

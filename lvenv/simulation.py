@@ -130,7 +130,7 @@ def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool, volume_trace: 
     return y_end, metrics, valid, traces
 
 
-#: Adaptive scheme: error scale added to |y| per state, for CaTRPN, B, S, W, ζs, ζw (dimensionless),
+#: Adaptive scheme: error scale added to abs(y) per state, for CaTRPN, B, S, W, ζs, ζw (dimensionless),
 #: V (in units of the member's V0) and P_c, P_at (kPa).
 _ERROR_SCALE = (1.0, 1.0, 0.01, 0.01, 0.01, 0.01, 1.0, 1.0, 1.0)
 #: Adaptive scheme: first step of a beat as a fraction of the period (the calcium transient starts at once).
@@ -161,7 +161,7 @@ def beat_adaptive(p: ModelParams, y0: jax.Array, step_tol, max_steps: int, grid:
     Returns ``(y_end, metrics, valid, trials, grid)``. Each member has its own t and h, all step
     in lock-step (``lax.while_loop``) and a member that has reached the end of its beat waits for
     the others. A step is accepted when the RMS over the states of the embedded ROS2 error
-    estimate (:func:`lvenv.integrator.ros2_step`), each scaled by ``step_tol`` · (|y| + s) with s
+    estimate (:func:`lvenv.integrator.ros2_step`), each scaled by ``step_tol`` · (abs(y) + s) with s
     from :data:`_ERROR_SCALE`, is at most 1; the next step is h · clip(0.9 err^(-1/2), 0.2, 5)
     (the estimate is O(h²)), and the last step lands on the end of the beat. Valve events are
     located by linear interpolation between accepted steps. A member not at the end of its beat

@@ -1,17 +1,17 @@
 """Outcome of a simulated member: one table of status codes, and one test of usability.
 
-=================  ====  ===========================================================================
-status             code  meaning
-=================  ====  ===========================================================================
-``ok``             0     steady state reached (or the fixed beats run) with a physical beat
-``not_converged``  1     a physical beat, but the beat-to-beat change stayed above ``rtol``
-``nonfinite``      2     the state or a metric became NaN / infinite
-``diverged``       3     the state left its physical range (V ≤ 0 or V > 20 V0, |P| > 200 kPa)
-``no_valve_cycle`` 4     the last beat lacked the full valve sequence (or ejected a negative volume)
-``non_physical``   5     a full valve cycle, but a non-physical beat: ESV ≤ 0, EF > 1, or no
-                         real ejection (EF < :data:`EF_MIN`)
-``invalid_action`` 100   environment only: the action held a non-finite entry
-=================  ====  ===========================================================================
+==================  ====  ===========================================================================
+status              code  meaning
+==================  ====  ===========================================================================
+``ok``              0     steady state reached (or the fixed beats run) with a physical beat
+``not_converged``   1     a physical beat, but the beat-to-beat change stayed above ``rtol``
+``nonfinite``       2     the state or a metric became NaN / infinite
+``diverged``        3     the state left its physical range (V ≤ 0 or V > 20 V0, abs(P) > 200 kPa)
+``no_valve_cycle``  4     the last beat lacked the full valve sequence (or ejected a negative volume)
+``non_physical``    5     a full valve cycle, but a non-physical beat: ESV ≤ 0, EF > 1, or no
+                          real ejection (EF < :data:`EF_MIN`)
+``invalid_action``  100   environment only: the action held a non-finite entry
+==================  ====  ===========================================================================
 
 Only ``ok`` and ``not_converged`` are *usable*: their metrics are reported; every other status
 masks the member's metrics to NaN, is an infeasible point for the optimisers and ends the

@@ -7,6 +7,7 @@ infeasible points with 0 < h <= h_max that no other point dominates (h' <= h and
 the filter, and the infeasible incumbent x^I is its point of least f (= largest h).
 
 An iteration is
+
 * dominating when a trial point improves x^F, or dominates x^I  -> the mesh coarsens,
 * improving when it is not dominating but a trial point enters the filter with h < h(x^I)
   -> the mesh stays, and h_max drops to the largest filter h below h(x^I),

@@ -47,7 +47,7 @@ gives the same fits, and a resumed run refits nothing.
 
 Output (:func:`output_columns`): ``id``, the carried-through columns,
 the fitted parameters (internal units, in the column names), ``mismatch`` (weighted mean relative
-error over the row's targets, a fraction), ``mismatch_<target>`` (|relative error| per target),
+error over the row's targets, a fraction), ``mismatch_<target>`` (abs(relative error) per target),
 the model's values at the fit (``fit_<column>``), the unmeasured filling pressures
 ``fit_EDP_mmHg`` and ``fit_P_at_mean_mmHg`` (kept within 4–25 mmHg by the objective's
 plausibility bands unless ``CohortOptions.plausibility`` is False), ``evaluations``, ``stop``, ``status`` and the

@@ -234,8 +234,8 @@ def null_directions(
 @dataclasses.dataclass(frozen=True)
 class RecoveryReport:
     """Synthetic recovery. truths / fits: (m, k) physical parameters (columns `names`);
-    mismatch: (m,) refitted mean relative mismatch; max_error: (m,) largest |e_k| over targets;
-    log_error: (m, k) |ln(fit / truth)| (|fit − truth| / range for linear parameters);
+    mismatch: (m,) refitted mean relative mismatch; max_error: (m,) largest abs(e_k) over targets;
+    log_error: (m, k) abs(ln(fit / truth)) (abs(fit − truth) / range for linear parameters);
     identifiable[name]: median error below `tol_identifiable`. null_share: (m, k) norm of each
     parameter's row of the local null basis of ∂ ln(targets)/∂u at the truth (`null_directions`;
     0: locally identifiable, 1: free to first order); null_basis: (m, k, k − rank)."""
@@ -288,8 +288,8 @@ def synthetic_recovery(
     """Fit back `n_sets` synthetic patients whose targets are simulated from random truths.
 
     The fit starts from the base patient's own parameters, not from the truth. A parameter
-    counts as identifiable when the median over sets of |ln(fit/truth)| (log axes) or
-    |fit − truth| / (upper − lower) (linear axes) stays below `tol_identifiable`.
+    counts as identifiable when the median over sets of abs(ln(fit/truth)) (log axes) or
+    abs(fit − truth) / (upper − lower) (linear axes) stays below `tol_identifiable`.
     """
     start = time.perf_counter()
     base_patient = _patient(base)

@@ -136,7 +136,7 @@ __all__ = ["NOISE", "Relative", "VOLUME_NAMES", "measurement_sd", "chi2_weighted
 
 @dataclasses.dataclass(frozen=True)
 class Relative:
-    """A measurement error proportional to the measured value: σ_k = ``fraction`` × |t_k|.
+    """A measurement error proportional to the measured value: σ_k = ``fraction`` × abs(t_k).
 
     A :data:`NOISE` entry is either this or a plain number, the standard deviation in internal
     units. Scaling by a number scales the fraction (``2 * Relative(0.05)`` is ``Relative(0.1)``).
@@ -179,7 +179,7 @@ _NULL_COMPONENT = 0.1
 
 def measurement_sd(targets: Mapping[str, float], noise: Mapping[str, float | Relative] = NOISE) -> np.ndarray:
     """σ_k of each target (internal units, in the targets' order): ``noise[k]``, or its fraction
-    of |t_k| for a :class:`Relative` entry."""
+    of abs(t_k) for a :class:`Relative` entry."""
     missing = [k for k in targets if k not in noise]
     if missing:
         raise InputError(f"no measurement error for the target(s) {missing}; give noise={{name: sd}} in internal units "

@@ -18,7 +18,7 @@ around the centre c = the best point since the restart, with the GP's Matérn le
 (bounded to [0.005, 2] as in TuRBO) stretching the box along the axes the objective varies slowly
 on, at an unchanged volume L^n before clipping. L is a fraction of the unit cube. The batch is q
 Thompson samples (TuRBO's acquisition; default) or q-point EI. After each batch that holds
-proposals (TuRBO §2, "Trust regions"):
+proposals (TuRBO §2, "Trust regions")::
 
     success  ⇔  min_batch y < y* - ε |y*|,   y* = best merit since the restart, ε = 1e-3;
     τ_succ consecutive successes:  L ← min(2 L, L_max), the success count restarts at 0;

@@ -25,7 +25,7 @@ coordinate directions, which on our inverse problems, whose minima lie in obliqu
 
 Poll directions (OrthoMADS §3): the Halton point u_t in [0, 1]^n (bases = first n primes) gives
 the adjusted direction q = round(α (2u_t - e)/||2u_t - e||), with α the largest value such that
-||q|| <= sqrt(δp/δm) (= 2^(|ℓ|/2) under OrthoMADS's rule); the Householder matrix
+||q|| <= sqrt(δp/δm) (= 2^(abs(ℓ)/2) under OrthoMADS's rule); the Householder matrix
 
     H = ||q||² I - 2 q qᵀ        (integer, columns orthogonal, each of norm ||q||²)
 
@@ -120,7 +120,7 @@ def halton_point(t: int, dimension: int) -> FloatArray:
 
 def adjusted_halton_direction(t: int, bound: float, dimension: int) -> NDArray[np.int64]:
     """q_t = round(α v), v = (2u_t - e)/||2u_t - e||, α maximal with ||q|| <= bound (>= 1;
-    OrthoMADS's bound at level ℓ is 2^(|ℓ|/2)).
+    OrthoMADS's bound at level ℓ is 2^(abs(ℓ)/2)).
 
     ||round(α v)|| is non-decreasing in α, so the largest admissible α is found by bisection.
     Rounding is half away from zero.
@@ -174,14 +174,14 @@ class MadsOptions:
     Latin-hypercube batch only if x0 fails (a good start, such as a patient's own parameters,
     is worth more than a spread first batch).
     search_first: evaluate the search points as a batch of their own before the poll, which is
-        skipped when they improve the incumbent (MADS's search-then-poll order). One more env
-        step per iteration; 2n evaluations fewer per successful search.
+    skipped when they improve the incumbent (MADS's search-then-poll order). One more env
+    step per iteration; 2n evaluations fewer per successful search.
     poll_chunk: evaluate the poll in batches of at most this many points, in poll order (the
-        surrogate's ranking), ending the iteration at the first batch that improves the incumbent
-        (with ``opportunistic``). None: the whole iteration in one batch, the fewest env steps.
-        ``search_first`` and ``poll_chunk`` apply to the penalty mode; the progressive barrier
-        evaluates each iteration (both frame centres' polls) in chunks of batch_size.
-        Default 4 (with ``search_first``; module docstring, Batching, for the figures).
+    surrogate's ranking), ending the iteration at the first batch that improves the incumbent
+    (with ``opportunistic``). None: the whole iteration in one batch, the fewest env steps.
+    ``search_first`` and ``poll_chunk`` apply to the penalty mode; the progressive barrier
+    evaluates each iteration (both frame centres' polls) in chunks of batch_size.
+    Default 4 (with ``search_first``; module docstring, Batching, for the figures).
     constraint: "penalty" minimises f + penalty·h (`optim.protocol`); "progressive_barrier"
     treats h by the progressive barrier (`optim.barrier`) with frame-centre trigger rho (in
     objective units) and reports the best point with h = 0. The kriging search models

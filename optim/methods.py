@@ -32,7 +32,7 @@ def make_optimizer(
     penalty: float = 1.0,
     options: Any = None,
 ) -> Optimizer:
-    """Optimiser for `method` in {"mads", "cma", "kriging"}; options must be its *Options type."""
+    """Optimiser for `method` in {"mads", "cma", "kriging"}; options must be its ``*Options`` type."""
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; choose one of {', '.join(map(repr, METHODS))}")
     cls, options_cls = METHODS[method]

@@ -36,7 +36,7 @@ relative change for the parameters spanning decades. Points are mapped to physic
 [−1, 1] for an env in `action_mode="normalized"`) before the step.
 
 Reported mismatch: `result.mismatch` is the env's `info["mismatch"]` at the best point,
-Σ_k w_k |e_k| / Σ_k w_k, and `result.mismatch_per_target[k] = |e_k|`.
+Σ_k w_k abs(e_k) / Σ_k w_k, and `result.mismatch_per_target[k] = abs(e_k)`.
 
 Checkpoint / resume: the checkpoint holds the optimiser's evaluation log (`optim.protocol`), the
 env's state (`venv.get_state()`: each member's LO-heart state, from which the next step is
@@ -126,8 +126,8 @@ class MinimizeResult:
     """Outcome of `minimize`. Internal units (kPa, ml, s); convert with `lvenv.units` for display.
 
     parameters: best parameter set by name (physical). observation: the env's observation there,
-    by `OBS_NAMES`. mismatch: Σ w_k |e_k| / Σ w_k there (float; inf if no point succeeded).
-    mismatch_per_target: |e_k| per target; relative_error: signed e_k. objective: f = −reward.
+    by `OBS_NAMES`. mismatch: Σ w_k abs(e_k) / Σ w_k there (float; inf if no point succeeded).
+    mismatch_per_target: abs(e_k) per target; relative_error: signed e_k. objective: f = −reward.
     wall_time: optimiser rounds (ask + env step + tell), summed over resumed segments; the first
     step on a fresh env includes its JIT compilation.
     """

@@ -4,16 +4,16 @@ the results the experiments left under ``out/`` (and the trained records shipped
 Nothing is recomputed. Each section states the command that produces its results. A section
 whose results are missing says so and gives that command. Sources:
 
-=================  ===========================================  ==============================================
-section            read from                                    written by
-=================  ===========================================  ==============================================
-congruency         ``lvenv/data/trained_*.json``                ``python scripts/train_presets.py``
-generalisation     ``out/generalisation/generalisation.{md,png}``  ``python scripts/generalisation.py``
-multi-element      ``out/multielement/multielement.md``         ``python scripts/multielement_study.py``
-inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``   ``make run``
-cohort             ``out/cohort/*.csv`` with its ``.json``      ``lvenv cohort REPORTS --out out/cohort/…``
-performance        ``out/bench/*.json``                         ``lvenv bench NAME``
-=================  ===========================================  ==============================================
+=================  ==============================================  ==============================================
+section            read from                                       written by
+=================  ==============================================  ==============================================
+congruency         ``lvenv/data/trained_*.json``                   ``python scripts/train_presets.py``
+generalisation     ``out/generalisation/generalisation.{md,png}``     ``python scripts/generalisation.py``
+multi-element      ``out/multielement/multielement.md``            ``python scripts/multielement_study.py``
+inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``      ``make run``
+cohort             ``out/cohort/*.csv`` with its ``.json``         ``lvenv cohort REPORTS --out out/cohort/…``
+performance        ``out/bench/*.json``                            ``lvenv bench NAME``
+=================  ==============================================  ==============================================
 """
 
 from __future__ import annotations

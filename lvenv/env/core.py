@@ -21,7 +21,7 @@ weights w_k normalised so that max_k w_k = 1 (host-side, :func:`env_params`)::
 
 computed on the noise-free model output, over the plausibility bands b in force
 (:mod:`lvenv.plausibility`: mean aortic pressure 80–120 mmHg always, s = 80 mmHg; by default also
-mean atrial pressure and EDP 4–25 mmHg, s = 25 mmHg; ``Config.plausibility``). ``mismatch`` = Σ_k w_k |e_k| / Σ_k w_k; an episode
+mean atrial pressure and EDP 4–25 mmHg, s = 25 mmHg; ``Config.plausibility``). ``mismatch`` = Σ_k w_k abs(e_k) / Σ_k w_k; an episode
 terminates when it falls below the tolerance, or when the simulation fails or the action is not
 finite (reward :data:`FAILURE_REWARD`, mismatch +inf). A failed member's observation is all
 zeros (inside the observation space) and its named metrics in ``info["metrics"]`` are NaN; its
