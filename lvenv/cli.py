@@ -42,7 +42,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from lvenv import jitcache, plots, presets
+from lvenv import interrupt, jitcache, plots, presets
 from lvenv.geometry import cavity_volume
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.metrics import SUMMARY_NAMES, display, header
@@ -50,7 +50,7 @@ from lvenv.params import field_names
 from lvenv.patients import BUILTIN, Patient, builtin
 from lvenv.plausibility import report as plausibility_report
 from lvenv.env.core import ENV_SCHEME
-from lvenv.simulation import SCHEMES, Traces, simulate
+from lvenv.simulation import MAX_BEATS, MAX_STEPS_PER_BEAT, MIN_STEPS_PER_BEAT, SCHEMES, Traces, simulate
 from lvenv.status import is_usable
 from lvenv.validation import InputError
 
@@ -147,7 +147,7 @@ def app(no_jit_cache: bool) -> None:
 
 
 @app.command("presets", epilog=_EPILOG)
-@click.option("--max-beats", type=click.IntRange(min=1), default=200, show_default=True, help="beats to reach steady state, at most")
+@click.option("--max-beats", type=click.IntRange(1, MAX_BEATS), default=200, show_default=True, help="beats to reach steady state, at most")
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
 def presets_command(max_beats: int, as_json: bool) -> int:
     """Simulate the built-in N and HF hearts: steady state and the training protocol."""
@@ -184,9 +184,9 @@ def presets_command(max_beats: int, as_json: bool) -> int:
 @click.option("--patient", "patient_file", type=click.Path(exists=True, dir_okay=False), default=None, help="patient JSON record whose heart to simulate")
 @click.option("--condition", type=click.IntRange(1, 3), default=None, help="apply Table 2 training condition 1, 2 or 3 (open loop)")
 @click.option("--set", "settings", multiple=True, metavar="NAME=VALUE", help="change a parameter (internal units), e.g. --set tau2=0.2; repeatable")
-@click.option("--beats", type=click.IntRange(min=1), default=None, help="fixed number of beats (default: to steady state)")
-@click.option("--max-beats", type=click.IntRange(min=1), default=200, show_default=True, help="beats to reach steady state, at most")
-@click.option("--steps-per-beat", type=click.IntRange(min=10), default=1000, show_default=True, help="ROS2 steps per cardiac cycle")
+@click.option("--beats", type=click.IntRange(1, MAX_BEATS), default=None, help="fixed number of beats (default: to steady state)")
+@click.option("--max-beats", type=click.IntRange(1, MAX_BEATS), default=200, show_default=True, help="beats to reach steady state, at most")
+@click.option("--steps-per-beat", type=click.IntRange(MIN_STEPS_PER_BEAT, MAX_STEPS_PER_BEAT), default=1000, show_default=True, help="ROS2 steps per cardiac cycle")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the PV loop and traces of the last beat (.png or .pdf)")
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of a table")
 def simulate_command(preset, patient_file, condition, settings, beats, max_beats, steps_per_beat, plot_path, as_json) -> int:
@@ -264,7 +264,7 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--budget", type=click.IntRange(min=16), default=480, show_default=True, help="steady-state simulations, at most")
 @click.option("--num-envs", type=click.IntRange(min=1), default=16, show_default=True, help="members of the vector env (points per round)")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
-@click.option("--steps-per-beat", type=click.IntRange(min=10), default=500, show_default=True,
+@click.option("--steps-per-beat", type=click.IntRange(MIN_STEPS_PER_BEAT, MAX_STEPS_PER_BEAT), default=500, show_default=True,
               help="ROS2 steps per cardiac cycle of the fixed-step simulations (lm, the fitted beat, --scheme fixed)")
 @click.option("--scheme", type=click.Choice(SCHEMES), default=ENV_SCHEME, show_default=True,
               help="integration scheme of the optimisers' env: step-size control, or --steps-per-beat equal steps")
@@ -559,7 +559,13 @@ def report_command(root, out_path, as_json) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the CLI; returns the exit code (see the module docstring)."""
+    """Run the CLI; returns the exit code (see the module docstring). A Ctrl-C ends the process
+    within a second or two with exit code 1 (:mod:`lvenv.interrupt`)."""
+    with interrupt.watchdog(EXIT_FAILED):
+        return _run(argv)
+
+
+def _run(argv: Sequence[str] | None) -> int:
     try:
         code = app.main(args=list(sys.argv[1:] if argv is None else argv), prog_name="lvenv", standalone_mode=False)
     except click.exceptions.Exit as done:
@@ -567,7 +573,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except click.ClickException as err:
         err.show()
         return EXIT_USAGE
-    except click.exceptions.Abort:
+    except (click.exceptions.Abort, KeyboardInterrupt):
         _err.print("lvenv: aborted")
         return EXIT_FAILED
     except InputError as err:

@@ -84,11 +84,14 @@ def test_an_overdriven_member_fails_its_env_step_and_only_it():
     [
         (dict(rtol=float("nan")), r"rtol = nan must be a finite real number in \(0, 1\)"),
         (dict(rtol=0.0), "rtol = 0.0"),
-        (dict(beats=1.5), "beats = 1.5 must be an integer ≥ 1"),
+        (dict(beats=1.5), r"beats = 1.5 must be an integer in \[1, 10000\]"),
         (dict(beats=0), "beats = 0"),
         (dict(beats=True), "beats = True"),
         (dict(max_beats="10"), "max_beats = '10'"),
-        (dict(steps_per_beat=5), "steps_per_beat = 5 must be an integer ≥ 10"),
+        (dict(steps_per_beat=5), r"steps_per_beat = 5 must be an integer in \[10, 50000\]"),
+        (dict(steps_per_beat=10**7), r"steps_per_beat = 10000000 must be an integer in \[10, 50000\]"),
+        (dict(beats=10**9), r"beats = 1000000000 must be an integer in \[1, 10000\]"),
+        (dict(max_beats=10**9), r"max_beats = 1000000000 must be an integer in \[1, 10000\]"),
         (dict(steps_per_beat=100.5), "steps_per_beat = 100.5"),
         (dict(traces="yes"), "traces = 'yes' must be True or False"),
         (dict(dtype="int32"), "dtype"),
@@ -104,7 +107,8 @@ def test_simulate_settings_are_checked(kwargs, message):
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        (dict(max_beats=0), "max_beats = 0 must be an integer ≥ 1"),
+        (dict(max_beats=0), r"max_beats = 0 must be an integer in \[1, 10000\]"),
+        (dict(steps_per_beat=10**7), "steps_per_beat = 10000000"),
         (dict(steps_per_beat=5), "steps_per_beat = 5"),
         (dict(rtol=float("inf")), "rtol = inf"),
         (dict(num_envs=2.5), "num_envs = 2.5"),
