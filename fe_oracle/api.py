@@ -9,7 +9,7 @@ import time
 
 import lvenv  # noqa: F401
 from lvenv.geometry import Geometry
-from lvenv.params import CellParams, LOParams
+from lvenv.params import CellParams, Circulation, Heart, LOParams, batch_size, validate
 from lvenv.validation import InputError, choice, integer, real
 
 from fe_oracle import cache
@@ -95,6 +95,7 @@ def run(
         duration = real("duration", duration, 0.0, lo_open=True)
     record = resolve_case(case)
     cell = CellParams() if cell is None else cell
+    _check_heart(geometry, record, cell, lo)
     passive = isinstance(record, Passive)
     if backend == "multielement":
         if activation != "eikonal":
@@ -126,6 +127,18 @@ def run(
                            synchronous=activation == "synchronous")
 
     return _cached(inputs, compute, cache_dir, use_cache, mesh_size=float(mesh_size))
+
+
+def _check_heart(geometry: Geometry, record: Passive | Circulation, cell: CellParams, lo: LOParams | None) -> None:
+    """The run's parameters, checked as :func:`lvenv.simulate` checks a Heart (the same
+    :class:`~lvenv.validation.InputError`, naming field, value and range): one parameter set, no batch."""
+    if not isinstance(cell, CellParams):
+        raise InputError(f"cell must be an lvenv.params.CellParams or None, got {type(cell).__name__}")
+    heart = Heart(geometry=geometry, lo=lo if isinstance(lo, LOParams) else LOParams(), cell=cell,
+                  circulation=record if isinstance(record, Circulation) else Circulation())
+    validate(heart)
+    if batch_size(heart) is not None:
+        raise InputError("an oracle run takes one parameter set: cell, circulation and lo must hold numbers, not a batch of arrays")
 
 
 def _cached(inputs: dict, compute, cache_dir, use_cache: bool, *, mesh_size: float | None) -> OracleResult:

@@ -494,7 +494,7 @@ def oracle_command(heart, case, backend, mesh_size, beats, plot_path, as_json) -
         beats = 1
     fe_metrics = fe_oracle.beat_metrics(result)
     lo_run = simulate(lo_case, beats=beats)
-    valid = bool(fe_metrics.pop("valid"))
+    valid, fe_status = bool(fe_metrics.pop("valid")), fe_metrics.pop("status")
     if plot_path is not None:
         period = float(result.metadata["period_s"])
         tr = result.traces
@@ -502,10 +502,10 @@ def oracle_command(heart, case, backend, mesh_size, beats, plot_path, as_json) -
         fe_traces = Traces(tr["t"][last] - tr["t"][last][0], tr["V"][last], tr["P_lv"][last], tr["P_ao"][last])
         plots.lo_fe_figure(lo_run.traces, fe_traces, plot_path, f"{heart}, case {case}: FE (solid) and LO (dashed)")
     if as_json:
-        _print_json({"case": case, "backend": backend, "fe": fe_metrics, "fe_valid": valid, "lo": lo_run.metrics, "lo_status": lo_run.status,
+        _print_json({"case": case, "backend": backend, "fe": fe_metrics, "fe_valid": valid, "fe_status": fe_status, "lo": lo_run.metrics, "lo_status": lo_run.status,
                      "from_cache": result.from_cache, "key": result.metadata.get("key"), "wall_time_s": time.perf_counter() - t0})
         return EXIT_OK if valid else EXIT_FAILED
-    rows = [(f"FE ({backend})", {k: float(fe_metrics.get(k, math.nan)) for k in SUMMARY_NAMES}, "ok" if valid else "no_valve_cycle"),
+    rows = [(f"FE ({backend})", {k: float(fe_metrics.get(k, math.nan)) for k in SUMMARY_NAMES}, fe_status),
             ("LO", lo_run.metrics, lo_run.status)]
     cached = ", cached" if result.from_cache else ""
     _out().print(_metrics_table(f"{heart}, case {case}: last beat ({time.perf_counter() - t0:.1f} s{cached})", rows))

@@ -443,9 +443,8 @@ def run(p: ElementParams, state0: State, newton_tol, *, kind: str, steps: int, b
     finite = jnp.all(jnp.isfinite(state.circ), axis=0) & jnp.all(jnp.isfinite(state.cells), axis=(0, 1)) & jnp.isfinite(res)
     for value in metrics.values():
         finite &= jnp.isfinite(value)
-    physical = (metrics["ESV"] > 0.0) & (metrics["EF"] <= 1.0) & (metrics["EF"] >= status.EF_MIN)
     code = jnp.where(~finite, status.NONFINITE, jnp.where(res > newton_tol, status.DIVERGED, jnp.where(
-        ~valid[-1], status.NO_VALVE_CYCLE, jnp.where(~physical, status.NON_PHYSICAL, status.OK))))
+        ~valid[-1], status.NO_VALVE_CYCLE, jnp.where(~status.is_physical(metrics), status.NON_PHYSICAL, status.OK))))
     out = {
         "state": state,
         "metrics": {name: jnp.where(status.is_usable(code), value, jnp.nan) for name, value in metrics.items()},

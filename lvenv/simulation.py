@@ -30,7 +30,8 @@ lanes (:func:`run_beats_queued`). :data:`run_beats_jit` is its jitted form.
 
 Status (:mod:`lvenv.status`): a member whose state turns non-finite or leaves its physical range
 is ``nonfinite`` / ``diverged``; a last beat without the full valve cycle is ``no_valve_cycle``;
-one with a full cycle but ESV ≤ 0, EF > 1 or EF < :data:`lvenv.status.EF_MIN` is
+one with a full cycle but a non-physical beat (:func:`lvenv.status.is_physical`: ESV ≤ 0, EF > 1,
+EF < :data:`lvenv.status.EF_MIN`, or a negative filling or diastolic aortic pressure) is
 ``non_physical``. Only ``ok`` and ``not_converged`` members report metrics; the others' are NaN.
 """
 
@@ -53,7 +54,7 @@ from lvenv.integrator import ros2_step
 from lvenv.metrics import METRIC_NAMES, SUMMARY_NAMES
 from lvenv.model import IDX_PC, IDX_V, ModelParams
 from lvenv.params import Heart, as_batch
-from lvenv.status import DIVERGED, EF_MIN, NO_VALVE_CYCLE, NON_PHYSICAL, NONFINITE, NOT_CONVERGED, OK, STATUS, is_usable, names
+from lvenv.status import DIVERGED, NO_VALVE_CYCLE, NON_PHYSICAL, NONFINITE, NOT_CONVERGED, OK, STATUS, is_physical, is_usable, names
 from lvenv.validation import InputError, choice, integer, real, real_array
 
 __all__ = ["STATUS", "SimulationResult", "Traces", "simulate", "run_beats", "run_beats_parallel", "run_beats_queued", "run_beats_jit", "check_settings", "MIN_STEPS_PER_BEAT", "MAX_STEPS_PER_BEAT", "MAX_BEATS", "SCHEMES", "DEFAULT_STEP_TOL", "ACCELERATIONS"]
@@ -397,9 +398,8 @@ def _advance(p: ModelParams, scale: jax.Array, c: dict, rtol, *, steps: int, ste
 def _finish(out: dict, steady: bool) -> dict:
     """:func:`run_beats`'s result from its final loop state: status codes, NaN metrics where unusable."""
     m = out["metrics"]
-    physical = (m["ESV"] > 0.0) & (m["EF"] <= 1.0) & (m["EF"] >= EF_MIN)
     status = jnp.where(out["status"] != OK, out["status"], jnp.where(
-        ~out["valid"], NO_VALVE_CYCLE, jnp.where(~physical, NON_PHYSICAL, jnp.where(steady & ~out["converged"], NOT_CONVERGED, OK))))
+        ~out["valid"], NO_VALVE_CYCLE, jnp.where(~is_physical(m), NON_PHYSICAL, jnp.where(steady & ~out["converged"], NOT_CONVERGED, OK))))
     result = {k: out[k] for k in ("y", "converged", "beats", "steps", "traces") if k in out}
     return {**result, "metrics": {k: jnp.where(is_usable(status), v, jnp.nan) for k, v in m.items()}, "status": status}
 

@@ -123,7 +123,7 @@ def test_beat_metrics_locate_valve_events_between_samples():
     last = beat_metrics(OracleResult(two, {"case": "beat", "period_s": 1.0}, []))
     assert last["IVCT"] == pytest.approx(m["IVCT"], rel=1e-9) and last["P_lv_peak"] == 12.0
     first = beat_metrics(OracleResult(two, {"case": "beat", "period_s": 1.0}, []), beat=0)
-    assert first["P_lv_peak"] == pytest.approx(6.0)
+    assert first["status"] == "no_valve_cycle" and np.isnan(first["P_lv_peak"]), "6 kPa never opens the aortic valve at 10 kPa"
     with pytest.raises(ValueError, match="passive"):
         beat_metrics(OracleResult(traces, {"case": "passive"}, []))
 
@@ -148,3 +148,36 @@ def test_code_version_covers_every_module_a_backend_runs():
                     todo += [n.replace(".", "/") + ".py" for n in names if (root / (n.replace(".", "/") + ".py")).is_file()]
         assert seen <= set(files), sorted(seen - set(files))
     assert "fe_oracle/api.py" not in cache.CODE["dolfinx"] and cache.code_version("dolfinx") != cache.code_version("multielement")
+
+
+def test_beat_metrics_hand_out_no_numbers_for_an_invalid_or_non_physical_beat():
+    from fe_oracle.metrics import beat_metrics
+
+    traces, _ = _synthetic_beat()
+    meta = {"case": "beat", "period_s": 1.0}
+    assert beat_metrics(OracleResult(traces, meta, []))["status"] == "ok"
+    # every pressure 2 kPa lower: the same valve events, but the LV fills by suction (EDP, P_at < 0)
+    sucking = {k: v - 2.0 if k.startswith("P_") else v for k, v in traces.items()}
+    flat = dict(traces, P_lv=np.full_like(traces["t"], 0.5))  # never opens the aortic valve
+    for bad, status in ((sucking, "non_physical"), (flat, "no_valve_cycle")):
+        m = beat_metrics(OracleResult(bad, meta, []))
+        assert m.pop("status") == status and m.pop("valid") == 0.0
+        assert all(np.isnan(v) for v in m.values()), {k: v for k, v in m.items() if not np.isnan(v)}
+
+
+def test_run_checks_cell_parameters_as_lvenv_simulate_does_on_either_backend():
+    import lvenv
+    from lvenv import presets
+    from lvenv.params import CellParams
+    from lvenv.validation import InputError
+
+    with pytest.raises(InputError) as lo:
+        lvenv.simulate(presets.normal().replace(Sa=-5.0), beats=1)
+    for backend in ("dolfinx", "multielement"):
+        with pytest.raises(InputError) as fe:
+            fe_oracle.run(fe_oracle.N_UNLOADED, 2, backend, cell=CellParams(Sa=-5.0), use_cache=False)
+        assert str(fe.value) == str(lo.value) == "cell.Sa = -5 1 is outside the allowed range [0.05, 10]"
+    with pytest.raises(InputError, match="circulation.R3 = 50"):
+        fe_oracle.run(fe_oracle.N_UNLOADED, Circulation(R3=50.0), use_cache=False)
+    with pytest.raises(InputError, match="cell must be an lvenv.params.CellParams"):
+        fe_oracle.run(fe_oracle.N_UNLOADED, 2, cell={"Sa": 1.0}, use_cache=False)

@@ -46,6 +46,18 @@ def test_an_overdriven_beat_is_non_physical_not_ok():
     assert 0.3 < res.metrics["EF"][0] < 0.8
 
 
+def test_a_heart_that_fills_by_suction_is_non_physical_not_ok(capsys):
+    # R3 at 45× its default pools the blood behind it: the atrium would run at −21 mmHg
+    res = lvenv.simulate([presets.normal(), presets.normal().replace(R3=10.0)], steps_per_beat=250, traces=False)
+    assert res.status.tolist() == ["ok", "non_physical"]
+    assert all(np.isnan(v[1]) for v in res.metrics.values()) and res.metrics["EDP"][0] > 0.0
+    from lvenv import cli
+
+    assert cli.main(["simulate", "--set", "R3=10", "--steps-per-beat", "250", "--json"]) == cli.EXIT_FAILED
+    payload = json.loads(capsys.readouterr().out)
+    assert payload["status"] == "non_physical" and payload["metrics"]["EDP"] is None
+
+
 def test_no_ok_beat_is_non_physical_over_random_hearts():
     rng = np.random.default_rng(7)
     ranges = lvenv.params.ranges()
@@ -59,6 +71,7 @@ def test_no_ok_beat_is_non_physical_over_random_hearts():
     m = res.metrics
     assert ok.sum() > 48
     assert np.all((m["EF"][ok] >= EF_MIN) & (m["EF"][ok] <= 1.0) & (m["ESV"][ok] > 0.0) & (m["ESV"][ok] < m["EDV"][ok]))
+    assert np.all((m["EDP"][ok] >= 0.0) & (m["P_at_mean"][ok] >= 0.0) & (m["P_ao_dia"][ok] >= 0.0))
     for value in m.values():
         assert np.all(np.isfinite(value[ok])) and np.all(np.isnan(value[~ok]))
 
