@@ -190,6 +190,8 @@ class Patient:
                 text = path.read_text()
             except OSError as err:
                 raise InputError(f"cannot read the patient record {str(path)!r}: {err.strerror or err}") from None
+            except UnicodeDecodeError as err:
+                raise InputError(f"patient record {str(path)!r} is not UTF-8 JSON text ({err.reason} at byte {err.start})") from None
             source = f"patient record {str(path)!r}"
         else:
             raise InputError(f"expected JSON text or a path to a JSON file, got {type(text_or_path).__name__}")

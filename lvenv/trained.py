@@ -11,13 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import pathlib
 from collections.abc import Mapping
 from typing import Any
 
 from lvenv.geometry import Geometry
-from lvenv.params import CellParams, Circulation, Heart, LOParams
-from lvenv.validation import InputError
+from lvenv.params import CellParams, Circulation, Heart, LOParams, validate
+from lvenv.validation import InputError, real
 
 __all__ = ["TrainedLO", "DATA", "builtin"]
 
@@ -62,23 +63,73 @@ class TrainedLO:
 
     @classmethod
     def from_dict(cls, record: Mapping[str, Any]) -> TrainedLO:
-        try:
-            return cls(
-                geometry=Geometry(**record["geometry"]), lo=LOParams(**record["lo"]), cell=CellParams(**record["cell"]),
-                congruency=dict(record["congruency"]), congruency_without_delay=record.get("congruency_without_delay"),
-                passive_rmse_ml=float(record["passive_rmse_ml"]), provenance=dict(record["provenance"]),
-            )
-        except (KeyError, TypeError) as err:
-            raise InputError(f"not a trained-LO record: {err}") from None
+        """A record from its dict (:meth:`to_dict`), checked field by field: a missing, unknown,
+        mistyped or list-valued field, or a parameter out of its range, raises
+        :class:`~lvenv.validation.InputError` naming it; nothing falls back to a default."""
+        if not isinstance(record, Mapping):
+            raise InputError(f"a trained-LO record is a JSON object, not {type(record).__name__}")
+        _known("record", record, _FIELDS)
+        geometry, lo, cell = (_parameters(part, record, kind) for part, kind in (("geometry", Geometry), ("lo", LOParams), ("cell", CellParams)))
+        validate(Heart(geometry=geometry, lo=lo, cell=cell))
+        without = record["congruency_without_delay"]
+        provenance = record["provenance"]
+        if not isinstance(provenance, Mapping):
+            raise InputError(f"provenance = {provenance!r} must be an object")
+        return cls(
+            geometry=geometry, lo=lo, cell=cell, congruency=_fractions("congruency", record["congruency"]),
+            congruency_without_delay=None if without is None else _fractions("congruency_without_delay", without),
+            passive_rmse_ml=_rmse(record["passive_rmse_ml"]), provenance=dict(provenance),
+        )
 
     @classmethod
     def from_json(cls, path: str | pathlib.Path) -> TrainedLO:
         path = pathlib.Path(path)
         try:
             record = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as err:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise InputError(f"cannot read the trained-LO record {str(path)!r}: {err}") from None
-        return cls.from_dict(record)
+        try:
+            return cls.from_dict(record)
+        except InputError as err:
+            raise InputError(f"trained-LO record {str(path)!r}: {err}") from None
+
+
+#: The fields of a record (:meth:`TrainedLO.to_dict`), every one required.
+_FIELDS = tuple(f.name for f in dataclasses.fields(TrainedLO))
+
+
+def _known(where: str, value: Mapping[str, Any], names: tuple[str, ...]) -> None:
+    """InputError naming the first missing or unknown key of ``value`` (the object ``where``)."""
+    if missing := [n for n in names if n not in value]:
+        raise InputError(f"{where} lacks the field(s) {missing}; required: {list(names)}")
+    if unknown := sorted(str(k) for k in value if k not in names):
+        raise InputError(f"{where} has the unknown field(s) {unknown}; known: {list(names)}")
+
+
+def _parameters(part: str, record: Mapping[str, Any], kind: type) -> Any:
+    """``record[part]`` as a ``kind`` (Geometry, LOParams, CellParams): every field present, each
+    one finite real number (a list would make a batch)."""
+    value = record[part]
+    if not isinstance(value, Mapping):
+        raise InputError(f"{part} = {value!r} must be an object of {kind.__name__} fields")
+    names = tuple(f.name for f in dataclasses.fields(kind))
+    _known(part, value, names)
+    return kind(**{n: real(f"{part}.{n}", value[n]) for n in names})
+
+
+def _rmse(value: Any) -> float:
+    """The passive fit's RMS residual (ml, ≥ 0), or NaN for a record without a passive fit
+    (one predicted rather than trained, :mod:`lvenv.anatomy`)."""
+    if isinstance(value, float) and math.isnan(value):
+        return value
+    return real("passive_rmse_ml", value, 0.0)
+
+
+def _fractions(name: str, value: Any) -> dict[str, float]:
+    """A congruency table: run name → relative RMS difference (a fraction, ≥ 0)."""
+    if not isinstance(value, Mapping):
+        raise InputError(f"{name} = {value!r} must be an object of run name → fraction ≥ 0")
+    return {str(k): real(f"{name}[{k!r}]", v, 0.0) for k, v in value.items()}
 
 
 def builtin(name: str) -> TrainedLO:

@@ -33,18 +33,19 @@ def _number(x: float) -> str:
 
 
 def _interval(lo: float, hi: float, lo_open: bool, hi_open: bool) -> str:
+    """The allowed interval in words (``in [0, 1)``, ``≥ 1``); empty when unbounded."""
     if math.isinf(hi) and not math.isinf(lo):
         return f"{'>' if lo_open else '≥'} {_number(lo)}"
     if math.isinf(lo) and not math.isinf(hi):
         return f"{'<' if hi_open else '≤'} {_number(hi)}"
     if math.isinf(lo) and math.isinf(hi):
-        return "any finite value"
+        return ""
     return f"in {'(' if lo_open else '['}{_number(lo)}, {_number(hi)}{')' if hi_open else ']'}"
 
 
 def real(name: str, value: Any, lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False, hi_open: bool = False) -> float:
     """``value`` as a finite float inside the interval, else ``ValueError`` naming ``name``."""
-    allowed = f"a finite real number {_interval(lo, hi, lo_open, hi_open)}"
+    allowed = f"a finite real number {_interval(lo, hi, lo_open, hi_open)}".rstrip()
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise InputError(f"{name} = {value!r} must be {allowed}")
     x = float(value)
@@ -58,7 +59,7 @@ def integer(name: str, value: Any, minimum: int | None = None, maximum: int | No
     """``value`` as an int within [minimum, maximum]; integral floats are accepted, bools are not."""
     lo = -math.inf if minimum is None else minimum
     hi = math.inf if maximum is None else maximum
-    allowed = f"an integer {_interval(lo, hi, False, False)}"
+    allowed = f"an integer {_interval(lo, hi, False, False)}".rstrip()
     integral = isinstance(value, numbers.Integral) or (isinstance(value, numbers.Real) and math.isfinite(float(value)) and float(value).is_integer())
     if isinstance(value, (bool, np.bool_)) or not integral:
         raise InputError(f"{name} = {value!r} must be {allowed}")
