@@ -1,4 +1,4 @@
-"""Command line: ``lvenv presets | simulate | reach | fit | cohort | train | oracle | bench | report`` (``lvenv --help``), on Click with rich output.
+"""Command line: ``lvenv presets | simulate | reach | fit | cohort | train | oracle | campaign | bench | report`` (``lvenv --help``), on Click with rich output.
 
 Exit codes (also in ``lvenv --help``):
 
@@ -555,6 +555,114 @@ def report_command(root, out_path, as_json) -> int:
         _print_json({"report": str(path)})
     else:
         _out().print(f"report written to {path}")
+    return EXIT_OK
+
+
+@app.group("campaign", epilog=_EPILOG)
+def campaign_group() -> None:
+    """Virtual-cohort campaigns: anatomies through the FE oracle and congruency training (optim.campaign)."""
+
+
+@campaign_group.command("run", epilog=_EPILOG)
+@click.argument("directory", type=click.Path(file_okay=False), required=False)
+@click.option("--n", "n", type=click.IntRange(min=1), default=None, help="anatomies for the regression (a new campaign) [default: the folder's]")
+@click.option("--held-out", type=click.IntRange(min=0), default=None, help="held-out anatomies from an independent hypercube (a new campaign)")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="sampling seed (a new campaign)")
+@click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default=None, help="the oracle (a new campaign) [default: dolfinx]")
+@click.option("--mesh-size", type=click.FloatRange(min=1.0), default=None, help="FE mesh size h (mm; a new campaign) [default: 6]")
+@click.option("--budget", type=click.IntRange(min=16), default=None, help="MADS evaluations per active fit (a new campaign) [default: 960]")
+@click.option("--timeout", "timeout_s", type=click.FloatRange(min=1.0), default=None, help="wall-clock limit of one FE solve, s (a new campaign) [default: 3600]")
+@click.option("--n-elements", type=click.IntRange(min=1), default=None, help="elements of the multielement backend (a new campaign)")
+@click.option("--workers", type=click.IntRange(min=1), default=None, help="Dask LocalCluster processes [default: one per core]")
+@click.option("--scheduler", default=None, metavar="ADDRESS", help="an existing Dask scheduler (e.g. tcp://host:8786) instead of a LocalCluster")
+@click.option("--cache-dir", type=click.Path(file_okay=False), default=None, help="the FE oracle's cache [default: $LVENV_FE_CACHE or ~/.cache/lvenv/fe_oracle]")
+@click.option("--limit", type=click.IntRange(min=0), default=None, help="stop after this many anatomies finish")
+@click.option("--allow-code-change", is_flag=True, help="continue a folder written by another oracle code version")
+@click.option("--json", "as_json", is_flag=True, help="print the counts as JSON")
+def campaign_run_command(directory, n, held_out, seed, backend, mesh_size, budget, timeout_s, n_elements, workers, scheduler, cache_dir, limit,
+                         allow_code_change, as_json) -> int:
+    """Run or resume the campaign in DIRECTORY [default: the package dataset lvenv/data/anatomy]: each
+    anatomy's passive curve and three training beats in the FE oracle, then congruency training.
+    Finished anatomies and FE runs are kept; the same command resumes."""
+    from optim import campaign
+
+    chosen = {"backend": backend, "mesh_size": mesh_size, "budget": budget, "timeout_s": timeout_s, "n_elements": n_elements}
+    settings = campaign.Settings(**{k: v for k, v in chosen.items() if v is not None}) if any(v is not None for v in chosen.values()) else None
+    started = time.perf_counter()
+    first: dict = {}
+
+    def event(counts: dict) -> None:
+        first.setdefault("pending", counts["pending"])
+        done_now = first["pending"] - counts["pending"]
+        elapsed = time.perf_counter() - started
+        left_s = elapsed / done_now * counts["pending"] if done_now else math.nan
+        eta = "" if not math.isfinite(left_s) or not counts["pending"] else f", about {left_s / 3600:.1f} h left" if left_s > 5400 else f", about {left_s / 60:.0f} min left"
+        finished = ", ".join(f"{counts[s]} {s}" for s in campaign.STATUSES if s != "pending" and counts[s])
+        last = f" [{counts['last']}: {counts['last_status']}]" if "last" in counts else ""
+        _err.print(f"campaign {time.strftime('%H:%M:%S')}: {finished or 'nothing finished'}; {counts['running']} running, "
+                   f"{counts['pending']} pending{eta}{last}", markup=False, soft_wrap=True)
+
+    directory = campaign.DATASET if directory is None else directory
+    try:
+        counts = campaign.run(directory, n=n, held_out=held_out, seed=seed, settings=settings, workers=workers, scheduler=scheduler,
+                              cache_dir=cache_dir, allow_code_change=allow_code_change, limit=limit, on_event=event)
+    except KeyboardInterrupt:
+        _err.print(f"campaign interrupted: every finished anatomy is kept in {directory}; run the same command to resume", markup=False)
+        raise click.exceptions.Abort() from None
+    if as_json:
+        _print_json(counts)
+    return EXIT_OK if not counts["failed_fe"] and not counts["failed_training"] else EXIT_FAILED
+
+
+@campaign_group.command("status", epilog=_EPILOG)
+@click.argument("directory", type=click.Path(file_okay=False), required=False)
+@click.option("--json", "as_json", is_flag=True, help="print JSON")
+def campaign_status_command(directory, as_json) -> int:
+    """Counts by status, the failures with their reasons, and the throughput per session."""
+    from optim import campaign
+
+    directory = campaign.DATASET if directory is None else directory
+    rows = campaign.read_index(directory)
+    counts = {s: sum(r["status"] == s for r in rows) for s in campaign.STATUSES}
+    failures = [{"id": r["id"], "status": r["status"], "reason": r["reason"]} for r in rows if r["status"] not in ("pending", "accepted")]
+    speed = campaign.throughput(directory)
+    if as_json:
+        _print_json({"counts": counts, "left_out": failures, "throughput": speed})
+        return EXIT_OK
+    _out().print(", ".join(f"{v} {k}" for k, v in counts.items() if v) or "no anatomies")
+    for f in failures:
+        _out().print(f"{f['id']}: {f['status']}: {f['reason']}", markup=False)
+    for s in speed:
+        _out().print(f"session {s['session']}: {s['anatomies']} anatomies on {s['workers']} worker(s), {s['per_hour']:.2f} per hour "
+                     f"(median {s['median_anatomy_min']:.1f} min each)")
+    return EXIT_OK
+
+
+@campaign_group.command("regress", epilog=_EPILOG)
+@click.argument("directory", type=click.Path(file_okay=False), required=False)
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="the artefact [default: the package's lvenv/data/anatomy/regression.json]")
+@click.option("--restarts", type=click.IntRange(min=0), default=5, show_default=True, help="optimiser restarts per Gaussian process")
+@click.option("--folds", type=click.IntRange(min=2), default=5, show_default=True, help="cross-validation folds")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="print the cross-validation figures as JSON")
+def campaign_regress_command(directory, out_path, restarts, folds, seed, as_json) -> int:
+    """Fit the Gaussian-process regression from geometry to the trained maps over the campaign's
+    accepted anatomies, cross-validate it and write the artefact lvenv.anatomy.from_geometry loads."""
+    from lvenv.anatomy import ARTEFACT
+    from optim import campaign, regression
+
+    fitted = regression.fit(campaign.DATASET if directory is None else directory, restarts=restarts, folds=folds, seed=seed)
+    path = regression.save(fitted, ARTEFACT if out_path is None else out_path)
+    cv = {name: spec["cv"] for name, spec in fitted.outputs.items()}
+    if as_json:
+        _print_json({"artefact": str(path), "anatomies": len(fitted.ids), "cv": cv})
+        return EXIT_OK
+    table = Table(title=f"{len(fitted.ids)} anatomies, {folds}-fold cross-validation → {path}", title_justify="left")
+    for col in ("output", "R²", "RMSE", "within 2 sd"):
+        table.add_column(col, justify="right")
+    for name, figures in cv.items():
+        table.add_row(name, f"{figures['r2']:.3f}", f"{figures['rmse']:.4g}", f"{100 * figures['coverage_2sd']:.0f} %")
+    _out().print(table)
     return EXIT_OK
 
 

@@ -64,7 +64,7 @@ from optim.protocol import Bounds, padded, run
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
     "OracleData", "TrainedLO", "Fidelity", "residuals", "congruency", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
-    "train", "check_fidelity",
+    "train", "train_on", "check_fidelity",
 ]
 
 TRAINING_PASSIVE = Passive(p_max=4.0, n_points=17, p_min=-0.75)
@@ -277,8 +277,17 @@ def train(
     choice("delay", delay, ("auto", "never", "always"))
     budget, batch, seed = integer("budget", budget, 1), integer("batch", batch, 1), integer("seed", seed, 0)
     data = oracle_data(geometry, backend, cell=cell, progress=progress, **oracle_options)
+    return train_on(data, start=start, delay=delay, budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat, progress=progress)
+
+
+def train_on(data: OracleData, *, start: LOParams | None = None, delay: str = "auto", budget: int = 960, batch: int = 16, seed: int = 0,
+             steps_per_beat: int = 1000, progress: bool | None = None) -> TrainedLO:
+    """Congruency-train against oracle runs already at hand (:func:`train` without the oracle
+    calls), e.g. the FE traces of a campaign's dataset (:mod:`optim.campaign`)."""
+    choice("delay", delay, ("auto", "never", "always"))
+    budget, batch, seed = integer("budget", budget, 1), integer("batch", batch, 1), integer("seed", seed, 0)
     if start is None:
-        start = {presets.HF_UNLOADED: presets.HF_LO}.get(geometry, presets.N_LO)
+        start = {presets.HF_UNLOADED: presets.HF_LO}.get(data.geometry, presets.N_LO)
     start = dataclasses.replace(start, delay=0.0)
     lo_passive, rmse = fit_passive(data, start)
     fit = functools.partial(fit_active, data, budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat, progress=progress)
@@ -290,14 +299,14 @@ def train(
         without = None if c_runs is None else congruency_dict(c_runs)
         if c_runs is None or overall(c_s) < overall(c_runs):
             lo, c_runs = lo_s, c_s
-    mesh = None if backend != "dolfinx" else float(oracle_options.get("mesh_size", 6.0))
+    mesh = None if data.backend != "dolfinx" else float(data.options.get("mesh_size", 6.0))
     provenance = {
-        "backend": backend, "mesh_size_mm": mesh, "dt_s": data.beats[CONDITIONS[0]].metadata.get("dt_s"),
-        "oracle_keys": data.keys, "oracle_options": {k: v for k, v in oracle_options.items() if k != "cache_dir" and isinstance(v, (int, float, str))},
-        "code_version": _code_version(backend), "budget": budget, "batch": batch, "seed": seed, "steps_per_beat": steps_per_beat,
+        "backend": data.backend, "mesh_size_mm": mesh, "dt_s": data.beats[CONDITIONS[0]].metadata.get("dt_s"),
+        "oracle_keys": data.keys, "oracle_options": {k: v for k, v in data.options.items() if k != "cache_dir" and isinstance(v, (int, float, str))},
+        "code_version": _code_version(data.backend), "budget": budget, "batch": batch, "seed": seed, "steps_per_beat": steps_per_beat,
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
-    return TrainedLO(geometry, lo, data.cell, congruency_dict(c_runs), without, rmse, provenance)
+    return TrainedLO(data.geometry, lo, data.cell, congruency_dict(c_runs), without, rmse, provenance)
 
 
 #: Fidelity targets and their tolerance: (kind, bound) with kind "abs" (internal units) or "rel".

@@ -1,0 +1,194 @@
+"""Trained LO maps for any anatomy from the virtual cohort's Gaussian-process regression (DESIGN §5).
+
+One Gaussian process per trained quantity maps the six unloaded geometric parameters (Rb, L, Z,
+H in mm, e, C0 in degrees) to a trained LO parameter (μ1, μ2, γ, α, β, a, b, c, the activation
+delay) or to the trained heart's congruency C. Inputs and outputs are standardised (mean 0, sd
+1 over the training anatomies); the kernel is::
+
+    k(x, x') = σ² · Matern_ν=5/2(‖(x − x') / ℓ‖) + σ_n² δ(x, x')
+
+with one length scale ℓ_j per input (ARD) and a white-noise term σ_n² for the scatter of the
+training itself. The predictive mean and standard deviation at a new anatomy come from
+scikit-learn's ``GaussianProcessRegressor`` rebuilt with the stored hyperparameters (no
+optimisation), so loading is exact and fast; the sd includes σ_n.
+
+The artefact is one JSON file (:data:`ARTEFACT`, format :data:`FORMAT_VERSION`): the inputs'
+and outputs' scalings, each GP's hyperparameters and cross-validation figures, the training
+anatomies (their ids and standardised values) and the provenance (dataset, mesh size, time
+step, code versions). `optim.regression` fits and writes it; nothing here unpickles.
+
+:func:`from_geometry` returns a :class:`~lvenv.trained.TrainedLO` in milliseconds, with the
+predictive sd of every parameter in ``provenance["sd"]``; a geometry outside the sampled box
+gets an :class:`ExtrapolationWarning` naming the parameter.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import pathlib
+import warnings
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from lvenv.geometry import Geometry
+from lvenv.params import CellParams, LOParams
+from lvenv.trained import DATA, TrainedLO
+from lvenv.validation import InputError
+
+__all__ = ["ARTEFACT", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ExtrapolationWarning", "Regression", "kernel", "from_geometry"]
+
+ARTEFACT = DATA / "anatomy" / "regression.json"
+FORMAT_VERSION = 1
+#: The GP inputs: the `Geometry` fields, in order.
+INPUTS = tuple(f.name for f in dataclasses.fields(Geometry))
+#: The trained LO parameters a regression predicts.
+LO_OUTPUTS = tuple(f.name for f in dataclasses.fields(LOParams))
+#: Matern smoothness ν.
+NU = 2.5
+
+
+class ExtrapolationWarning(UserWarning):
+    """A geometry outside the box the regression's anatomies were sampled from."""
+
+
+def kernel(n_inputs: int, *, constant: float = 1.0, length_scale: Sequence[float] | None = None, noise: float = 1e-2, fixed: bool = False):
+    """The kernel of the module docstring (scikit-learn), with free hyperparameters for fitting
+    or, with ``fixed``, frozen at the given values for prediction."""
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    bounds = "fixed" if fixed else None
+    scales = np.ones(n_inputs) if length_scale is None else np.asarray(length_scale, float)
+    return (ConstantKernel(constant, constant_value_bounds=bounds or (1e-3, 1e3))
+            * Matern(scales, length_scale_bounds=bounds or (1e-2, 1e3), nu=NU)
+            + WhiteKernel(noise, noise_level_bounds=bounds or (1e-8, 1.0)))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Regression:
+    """A loaded regression artefact (module docstring). ``outputs`` maps a name to its scaling
+    (``mean``, ``scale``), its hyperparameters (``constant``, ``length_scale``, ``noise``) and
+    ``cv``; ``x`` and ``y`` are the standardised training data; ``box`` the sampling box."""
+
+    x_mean: np.ndarray
+    x_scale: np.ndarray
+    x: np.ndarray
+    y: dict[str, np.ndarray]
+    outputs: dict[str, dict[str, Any]]
+    box: dict[str, tuple[float, float]]
+    ids: tuple[str, ...]
+    provenance: dict[str, Any]
+    _gps: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_dict(cls, record: Mapping[str, Any], source: str = "regression record") -> Regression:
+        """Validate and build; :class:`~lvenv.validation.InputError` naming the field otherwise."""
+        if not isinstance(record, Mapping):
+            raise InputError(f"{source} is not a JSON object")
+        if record.get("format") != FORMAT_VERSION:
+            raise InputError(f"{source} has format {record.get('format')!r}; this lvenv reads format {FORMAT_VERSION}")
+        try:
+            x = np.asarray(record["x"], float)
+            outputs = {str(k): dict(v) for k, v in record["outputs"].items()}
+            y = {k: np.asarray(record["y"][k], float) for k in outputs}
+            reg = cls(np.asarray(record["x_mean"], float), np.asarray(record["x_scale"], float), x, y, outputs,
+                      {k: (float(lo), float(hi)) for k, (lo, hi) in record["box"].items()}, tuple(record["ids"]), dict(record["provenance"]))
+            for name, spec in outputs.items():
+                for field in ("mean", "scale", "constant", "noise"):
+                    value = spec[field]
+                    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                        raise ValueError(f"outputs.{name}.{field} = {value!r} is not a finite number")
+                if len(spec["length_scale"]) != len(INPUTS):
+                    raise ValueError(f"outputs.{name}.length_scale has {len(spec['length_scale'])} entries, not {len(INPUTS)}")
+        except (KeyError, TypeError, ValueError) as err:
+            raise InputError(f"{source} is malformed: {type(err).__name__}: {err}") from None
+        if x.ndim != 2 or x.shape[1] != len(INPUTS) or reg.x_mean.shape != (len(INPUTS),) or reg.x_scale.shape != (len(INPUTS),):
+            raise InputError(f"{source} is malformed: x must be (anatomies, {len(INPUTS)}), x_mean and x_scale ({len(INPUTS)},)")
+        if any(v.shape != (len(x),) for v in y.values()) or len(reg.ids) != len(x):
+            raise InputError(f"{source} is malformed: y and ids must have one entry per anatomy ({len(x)})")
+        if set(reg.box) != set(INPUTS):
+            raise InputError(f"{source} is malformed: box must name {list(INPUTS)}, not {sorted(reg.box)}")
+        return reg
+
+    @classmethod
+    def load(cls, path: str | pathlib.Path = ARTEFACT) -> Regression:
+        path = pathlib.Path(path)
+        try:
+            record = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise InputError(f"no anatomy regression at {str(path)!r}: it is written by `lvenv campaign regress` once the campaign "
+                             "dataset has accepted anatomies") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise InputError(f"cannot read the anatomy regression {str(path)!r}: {type(err).__name__}: {err}") from None
+        return cls.from_dict(record, f"anatomy regression {str(path)!r}")
+
+    def _gp(self, name: str):
+        """The scikit-learn GP of ``name`` with the stored hyperparameters (fitted once, no optimiser)."""
+        from sklearn.gaussian_process import GaussianProcessRegressor
+
+        if name not in self.outputs:
+            raise InputError(f"the regression has no output {name!r}; it has {list(self.outputs)}")
+        if name not in self._gps:
+            spec = self.outputs[name]
+            k = kernel(len(INPUTS), constant=spec["constant"], length_scale=spec["length_scale"], noise=spec["noise"], fixed=True)
+            self._gps[name] = GaussianProcessRegressor(k, optimizer=None, alpha=1e-10).fit(self.x, self.y[name])
+        return self._gps[name]
+
+    def standardise(self, geometries: Sequence[Geometry]) -> np.ndarray:
+        return (np.array([g.as_tuple() for g in geometries]) - self.x_mean) / self.x_scale
+
+    def outside(self, geometry: Geometry) -> list[str]:
+        """The parameters of ``geometry`` outside the sampling box, each with its value and range."""
+        return [f"geometry.{k} = {getattr(geometry, k):g} outside the sampled range [{lo:g}, {hi:g}]"
+                for k, (lo, hi) in self.box.items() if not lo <= getattr(geometry, k) <= hi]
+
+    def predict(self, geometries: Sequence[Geometry], names: Sequence[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Predictive means and sds (physical units) per output name, each of shape (anatomies,)."""
+        names = tuple(self.outputs) if names is None else tuple(names)
+        x = self.standardise(geometries)
+        mean, sd = {}, {}
+        for name in names:
+            m, s = self._gp(name).predict(x, return_std=True)
+            spec = self.outputs[name]
+            mean[name], sd[name] = m * spec["scale"] + spec["mean"], s * spec["scale"]
+        return mean, sd
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": FORMAT_VERSION, "kind": "lvenv.anatomy.Regression", "inputs": list(INPUTS), "box": {k: list(v) for k, v in self.box.items()},
+                "x_mean": self.x_mean.tolist(), "x_scale": self.x_scale.tolist(), "outputs": self.outputs, "ids": list(self.ids),
+                "x": self.x.tolist(), "y": {k: v.tolist() for k, v in self.y.items()}, "provenance": self.provenance}
+
+
+@functools.lru_cache(maxsize=4)
+def _shipped(path: str) -> Regression:
+    return Regression.load(path)
+
+
+def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Path | None = None, cell: CellParams | None = None) -> TrainedLO:
+    """The GP-predicted trained LO maps of ``geometry`` (unloaded, mm), no FE run.
+
+    ``regression``: a :class:`Regression`, a path to an artefact, or None for the shipped one
+    (:data:`ARTEFACT`). The record's ``congruency["C"]`` is the predicted C of a heart trained
+    on this anatomy; ``provenance["sd"]`` holds the predictive sd of every parameter and of C
+    (same units), ``provenance["outside_box"]`` the parameters outside the sampled box.
+    """
+    if not isinstance(geometry, Geometry):
+        raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
+    if not isinstance(regression, Regression):
+        regression = _shipped(str(ARTEFACT if regression is None else pathlib.Path(regression).resolve()))
+    missing = [n for n in LO_OUTPUTS if n not in regression.outputs]
+    if missing:
+        raise InputError(f"the regression does not predict {missing}; it predicts {list(regression.outputs)}")
+    outside = regression.outside(geometry)
+    for message in outside:
+        warnings.warn(f"{message}: the anatomy regression extrapolates there", ExtrapolationWarning, stacklevel=2)
+    mean, sd = regression.predict([geometry])
+    lo = LOParams(**{n: float(mean[n][0]) for n in LO_OUTPUTS})
+    c = float(mean["C"][0]) if "C" in mean else math.nan
+    provenance = {"source": "gaussian-process regression over geometry", "sd": {k: float(v[0]) for k, v in sd.items()},
+                  "outside_box": outside, "training_anatomies": len(regression.ids), **{k: v for k, v in regression.provenance.items() if k != "cv"}}
+    return TrainedLO(geometry, lo, CellParams() if cell is None else cell, {"C": c}, None, math.nan, provenance)

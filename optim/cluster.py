@@ -1,0 +1,43 @@
+"""The Dask client every distributed job of ours uses (cohort fits, anatomy campaigns).
+
+``client(workers, scheduler)`` is a context manager: with ``scheduler`` (an address such as
+``tcp://host:8786``) it connects to that existing cluster, else it starts a ``LocalCluster`` of
+``workers`` single-threaded processes on loopback. An address that answers nothing within
+``timeout_s`` is an :class:`~lvenv.validation.InputError` naming it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+
+from lvenv.validation import InputError, integer
+
+__all__ = ["client", "default_workers"]
+
+
+def default_workers() -> int:
+    """Worker processes of a default ``LocalCluster``: one per core this process may use."""
+    return max(1, len(os.sched_getaffinity(0)))
+
+
+@contextlib.contextmanager
+def client(workers: int | None = None, scheduler: str | None = None, *, timeout_s: float = 10.0) -> Iterator:
+    """A ``dask.distributed.Client`` on a fresh ``LocalCluster`` (``workers`` processes, default
+    :func:`default_workers`) or on the cluster at ``scheduler``; closed on exit."""
+    from dask.distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        if not isinstance(scheduler, str) or "://" not in scheduler:
+            raise InputError(f"scheduler = {scheduler!r} is not a Dask scheduler address; give one such as tcp://127.0.0.1:8786")
+        try:
+            handle = Client(scheduler, timeout=timeout_s)
+        except (OSError, TimeoutError) as err:
+            raise InputError(f"no Dask scheduler answers at scheduler = {scheduler!r} within {timeout_s:g} s ({type(err).__name__}: {err})") from None
+        with contextlib.closing(handle):
+            yield handle
+        return
+    workers = default_workers() if workers is None else integer("workers", workers, 1)
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, Client(cluster) as handle:
+        yield handle

@@ -1,0 +1,139 @@
+"""Gaussian-process regression from geometry to the trained LO maps, over a campaign's dataset (DESIGN §5).
+
+`fit(directory)` reads the accepted training anatomies of a campaign (`optim.campaign`), fits
+one scikit-learn ``GaussianProcessRegressor`` per trained quantity (the LO parameters of
+:data:`lvenv.anatomy.LO_OUTPUTS` and the congruency C) with the kernel of
+:func:`lvenv.anatomy.kernel` on standardised inputs and outputs, maximising the log marginal
+likelihood from ``restarts`` + 1 starts, and cross-validates each by k-fold (the
+hyperparameters refitted on every training fold). It returns a :class:`lvenv.anatomy.Regression`,
+which `save` writes as the package's JSON artefact.
+
+Cross-validation figures per output: R² = 1 − Σ(y − ŷ)² / Σ(y − ȳ)² over the held-out
+predictions, the RMSE (physical units) and the fraction of held-out anatomies within 2
+predictive sd of their trained value.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import os
+import pathlib
+import warnings
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from lvenv.anatomy import ARTEFACT, INPUTS, LO_OUTPUTS, Regression, kernel
+from lvenv.validation import InputError, integer
+from optim import campaign
+from optim.cohort import GEOMETRY_COLUMNS
+
+__all__ = ["OUTPUTS", "MIN_ANATOMIES", "training_set", "fit_gp", "cross_validate", "fit", "save"]
+
+#: What the regression predicts: the LO parameters and the trained heart's C.
+OUTPUTS = (*LO_OUTPUTS, "C")
+#: Fewer accepted anatomies than this make no regression (5 folds of at least 2).
+MIN_ANATOMIES = 10
+
+
+def training_set(directory: str | os.PathLike[str] = campaign.DATASET, split: str = "train") -> tuple[list[str], np.ndarray, dict[str, np.ndarray]]:
+    """Ids, geometries (anatomies × 6, `Geometry` field order) and trained values of the
+    accepted anatomies of ``split`` ("train" or "heldout")."""
+    rows = [r for r in campaign.read_index(directory) if r["status"] == "accepted" and r["split"] == split]
+    column = {name: col for col, name in GEOMETRY_COLUMNS.items()}
+    x = np.array([[r[column[k]] for k in INPUTS] for r in rows], float).reshape(len(rows), len(INPUTS))
+    return [r["id"] for r in rows], x, {name: np.array([r[name] for r in rows], float) for name in OUTPUTS}
+
+
+def _scaling(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    mean, scale = values.mean(axis=0), values.std(axis=0)
+    return mean, np.where(scale > 0, scale, 1.0)
+
+
+def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 5, seed: int = 0):
+    """A fitted ``GaussianProcessRegressor`` on standardised ``x`` (n × 6) and ``y`` (n,).
+
+    scikit-learn warns when a hyperparameter ends at its bound; here that is the point of ARD (a
+    length scale at its upper bound marks an input the output does not depend on; the noise at its
+    lower bound, a noise-free output), so those warnings are silenced.
+    """
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.gaussian_process import GaussianProcessRegressor
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return GaussianProcessRegressor(kernel(x.shape[1]), alpha=1e-10, n_restarts_optimizer=restarts, random_state=seed).fit(x, y)
+
+
+def _hyperparameters(gp) -> dict[str, Any]:
+    k = gp.kernel_
+    return {"constant": float(k.k1.k1.constant_value), "length_scale": np.atleast_1d(k.k1.k2.length_scale).astype(float).tolist(),
+            "noise": float(k.k2.noise_level), "log_marginal_likelihood": float(gp.log_marginal_likelihood_value_)}
+
+
+def cross_validate(x: np.ndarray, y: dict[str, np.ndarray], folds: int = 5, restarts: int = 5, seed: int = 0) -> dict[str, dict[str, Any]]:
+    """k-fold cross-validation per output (module docstring): ``r2``, ``rmse``, ``coverage_2sd``
+    and the held-out ``predicted`` means and ``sd`` in the anatomies' order."""
+    from sklearn.model_selection import KFold
+
+    folds = integer("folds", folds, 2, len(x))
+    out = {}
+    for name, values in y.items():
+        mean, sd = np.empty(len(x)), np.empty(len(x))
+        for train, test in KFold(folds, shuffle=True, random_state=seed).split(x):
+            x_mean, x_scale = _scaling(x[train])
+            y_mean, y_scale = _scaling(values[train])
+            gp = fit_gp((x[train] - x_mean) / x_scale, (values[train] - y_mean) / y_scale, restarts, seed)
+            m, s = gp.predict((x[test] - x_mean) / x_scale, return_std=True)
+            mean[test], sd[test] = m * y_scale + y_mean, s * y_scale
+        residual = values - mean
+        total = np.sum((values - values.mean()) ** 2)
+        out[name] = {"r2": float(1.0 - np.sum(residual**2) / total) if total > 0 else float("nan"), "rmse": float(np.sqrt(np.mean(residual**2))),
+                     "coverage_2sd": float(np.mean(np.abs(residual) <= 2.0 * sd)), "predicted": mean.tolist(), "sd": sd.tolist()}
+    return out
+
+
+def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int = 5, folds: int = 5, seed: int = 0,
+        outputs: Sequence[str] = OUTPUTS) -> Regression:
+    """The regression over the accepted training anatomies of the campaign in ``directory``,
+    with each output's cross-validation figures (module docstring)."""
+    restarts, seed = integer("restarts", restarts, 0), integer("seed", seed, 0)
+    unknown = [o for o in outputs if o not in OUTPUTS]
+    if unknown:
+        raise InputError(f"outputs {unknown} are not trained quantities; choose from {list(OUTPUTS)}")
+    ids, x, y = training_set(directory)
+    if len(ids) < MIN_ANATOMIES:
+        raise InputError(f"the campaign in {str(directory)!r} has {len(ids)} accepted training anatomies; a regression needs at least {MIN_ANATOMIES}")
+    y = {name: y[name] for name in outputs}
+    cv = cross_validate(x, y, folds, restarts, seed)
+    x_mean, x_scale = _scaling(x)
+    xs = (x - x_mean) / x_scale
+    specs, ys = {}, {}
+    for name, values in y.items():
+        y_mean, y_scale = _scaling(values)
+        ys[name] = (values - y_mean) / y_scale
+        gp = fit_gp(xs, ys[name], restarts, seed)
+        specs[name] = {"mean": float(y_mean), "scale": float(y_scale), **_hyperparameters(gp),
+                       "cv": {k: v for k, v in cv[name].items() if k in ("r2", "rmse", "coverage_2sd")} | {"folds": folds}}
+    config = json.loads((pathlib.Path(directory) / "campaign.json").read_text())
+    index = (pathlib.Path(directory) / "anatomies.csv").read_bytes()
+    provenance = {"dataset": str(directory), "dataset_sha256": hashlib.sha256(index).hexdigest()[:16], "settings": config["settings"],
+                  "oracle_code": sorted({r["oracle_code"] for r in campaign.read_index(directory) if r["id"] in set(ids)}),
+                  "restarts": restarts, "seed": seed, "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                  "cv_predictions": {name: {"predicted": cv[name]["predicted"], "sd": cv[name]["sd"]} for name in y}}
+    box = {k: tuple(v) for k, v in config["box"].items()}
+    return Regression(x_mean, x_scale, xs, ys, specs, box, tuple(ids), provenance)
+
+
+def save(regression: Regression, path: str | os.PathLike[str] = ARTEFACT) -> pathlib.Path:
+    """Write the artefact (JSON) atomically; returns its path."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(regression.to_dict(), indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+

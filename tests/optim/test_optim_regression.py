@@ -1,0 +1,116 @@
+"""The anatomy regression: cross-validation on a known smooth map, the artefact's round trip to
+`lvenv.anatomy.from_geometry` (predictions equal scikit-learn's own), the warning outside the box
+and clear errors for malformed artefacts."""
+
+import csv
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from lvenv import anatomy
+from lvenv.anatomy import ExtrapolationWarning, Regression
+from lvenv.geometry import Geometry
+from lvenv.validation import InputError
+from optim import campaign, regression
+from optim.campaign import Settings
+from optim.cohort import GEOMETRY_COLUMNS
+
+N = 40
+
+
+def _truth(g: dict) -> dict:
+    """A smooth map from geometry to trained values, of the size the FE campaign gives."""
+    return {"mu1": 0.15 + 0.004 * (g["Rb"] - 37) - 0.006 * (g["L"] - 10), "mu2": 0.16 + 0.01 * np.sin((g["Z"] - 53) / 10),
+            "gamma": 2.0 + 0.05 * (g["H"] - 9) ** 2 / 4, "alpha": 0.7, "beta": 3.0 + 2.0 * (g["e"] - 0.7), "a": 2.2 + 0.01 * (g["C0"] + 60),
+            "b": -1.6 + 0.02 * (g["Rb"] - 37), "c": 2.3 - 0.03 * (g["L"] - 10), "delay": 0.04 + 0.001 * (g["Z"] - 53), "C": 0.05 + 0.002 * (g["L"] - 10)}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """A campaign folder whose anatomies carry trained values from :func:`_truth` plus 0.5 % noise."""
+    directory = tmp_path_factory.mktemp("anatomy")
+    campaign.run(directory, n=N, held_out=3, seed=2, settings=Settings(backend="multielement", budget=16), limit=0)
+    rows = campaign.read_index(directory)
+    rng = np.random.default_rng(0)
+    for row in rows:
+        g = {name: row[col] for col, name in GEOMETRY_COLUMNS.items()}
+        row.update({k: v * (1 + 0.005 * rng.standard_normal()) for k, v in _truth(g).items()}, status="accepted", reason="", oracle_code="x")
+    with (directory / "anatomies.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, campaign.COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
+    return directory
+
+
+@pytest.fixture(scope="module")
+def fitted(dataset):
+    return regression.fit(dataset, restarts=0, folds=5)
+
+
+def test_cross_validation_recovers_a_smooth_map_with_calibrated_intervals(fitted):
+    assert set(fitted.outputs) == set(regression.OUTPUTS)
+    for name in ("mu1", "mu2", "b", "c", "delay", "C"):
+        cv = fitted.outputs[name]["cv"]
+        assert cv["r2"] > 0.9, (name, cv)
+        assert 0.75 <= cv["coverage_2sd"] <= 1.0, (name, cv)
+    assert fitted.ids == tuple(f"A{i:03d}" for i in range(N))  # the held-out anatomies stay out
+
+
+def test_artefact_round_trip_predicts_what_scikit_learn_predicts(fitted, dataset, tmp_path):
+    path = regression.save(fitted, tmp_path / "regression.json")
+    loaded = Regression.load(path)
+    ids, x, y = regression.training_set(dataset, split="heldout")
+    geometries = [Geometry(*row) for row in x]
+    mean, sd = loaded.predict(geometries)
+    # the reference: scikit-learn fitted afresh on the same standardised data with the same restarts
+    xs = (x - fitted.x_mean) / fitted.x_scale
+    for name in ("mu1", "delay", "C"):
+        spec = fitted.outputs[name]
+        gp = regression.fit_gp(fitted.x, fitted.y[name], restarts=0, seed=0)
+        m, s = gp.predict(xs, return_std=True)
+        np.testing.assert_allclose(mean[name], m * spec["scale"] + spec["mean"], rtol=1e-6)
+        np.testing.assert_allclose(sd[name], s * spec["scale"], rtol=1e-4)
+    trained = anatomy.from_geometry(geometries[0], loaded)
+    assert trained.lo.mu1 == pytest.approx(mean["mu1"][0]) and trained.provenance["sd"]["mu1"] == pytest.approx(sd["mu1"][0])
+    assert trained.congruency["C"] == pytest.approx(mean["C"][0]) and not trained.provenance["outside_box"]
+    assert trained.heart().geometry == geometries[0]
+
+
+def test_a_geometry_outside_the_box_is_predicted_with_a_warning_naming_the_parameter(fitted):
+    with pytest.warns(ExtrapolationWarning, match=r"geometry.Rb = 55 outside the sampled range \[28, 46\]"):
+        trained = anatomy.from_geometry(Geometry(55.0, 10.0, 55.0, 10.0, 0.7, -60.0), fitted)
+    assert trained.provenance["outside_box"] and np.isfinite(trained.lo.mu1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        anatomy.from_geometry(Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0), fitted)
+
+
+def test_malformed_or_missing_artefacts_are_refused_naming_the_problem(fitted, tmp_path):
+    record = fitted.to_dict()
+    cases = {
+        "format": (record | {"format": 7}, "has format 7"),
+        "length": (record | {"outputs": record["outputs"] | {"mu1": record["outputs"]["mu1"] | {"length_scale": [1.0]}}}, "outputs.mu1.length_scale has 1"),
+        "noise": (record | {"outputs": record["outputs"] | {"mu1": record["outputs"]["mu1"] | {"noise": None}}}, "outputs.mu1.noise"),
+        "missing": ({k: v for k, v in record.items() if k != "x"}, "KeyError: 'x'"),
+        "ids": (record | {"ids": record["ids"][:-1]}, "one entry per anatomy"),
+    }
+    for name, (bad, message) in cases.items():
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps(bad))
+        with pytest.raises(InputError, match=message):
+            Regression.load(path)
+    (tmp_path / "junk.json").write_bytes(b"\xff\xfe not json")
+    with pytest.raises(InputError, match="cannot read the anatomy regression"):
+        Regression.load(tmp_path / "junk.json")
+    with pytest.raises(InputError, match="lvenv campaign regress"):
+        Regression.load(tmp_path / "absent.json")
+    with pytest.raises(InputError, match="no output 'zeta'"):
+        fitted.predict([Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0)], ["zeta"])
+
+
+def test_too_few_anatomies_make_no_regression(tmp_path):
+    campaign.run(tmp_path, n=3, settings=Settings(backend="multielement", budget=16), limit=0)
+    with pytest.raises(InputError, match="has 0 accepted training anatomies; a regression needs at least 10"):
+        regression.fit(tmp_path)
