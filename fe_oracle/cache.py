@@ -4,8 +4,9 @@ Key = SHA-256 of a canonical JSON of: backend, geometry, case, mesh size, dt, be
 cell and circulation parameters (every field by name, so a new or renamed field changes it too),
 solver options, and the backend's *code version* — a hash of the source files whose code its
 results depend on (:data:`CODE`: the backend's own modules and the ``lvenv`` equations they
-run). Changing any of them gives a new key, so stale results are never reused, while an edit
-elsewhere (a docstring of the front end, another backend) keeps the cached runs.
+run). Changing the code of any of them gives a new key, so stale results are never reused, while
+an edit elsewhere (the front end, another backend) or of documentation only (docstrings,
+comments, layout: the version hashes the syntax trees without them) keeps the cached runs.
 
 An entry is one ``<key>.npz`` file (traces plus the metadata and solver log as JSON), written
 atomically in the safe format of :mod:`lvenv.archive`, so a killed run leaves either the
@@ -16,6 +17,7 @@ Default directory: ``$LVENV_FE_CACHE`` or ``~/.cache/lvenv/fe_oracle``.
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import functools
 import hashlib
@@ -29,7 +31,7 @@ from lvenv import archive
 
 from fe_oracle.result import OracleResult
 
-__all__ = ["default_dir", "code_version", "key", "load", "store"]
+__all__ = ["default_dir", "code_text", "code_version", "key", "load", "store"]
 
 #: Per backend, the source files its results depend on (package-relative paths).
 CODE = {
@@ -47,14 +49,28 @@ def default_dir() -> pathlib.Path:
     return pathlib.Path(os.environ.get("LVENV_FE_CACHE", pathlib.Path.home() / ".cache" / "lvenv" / "fe_oracle"))
 
 
+def code_text(source: str) -> str:
+    """The syntax tree of ``source`` without docstrings, comments or layout, as text: what a
+    code version hashes, so that editing documentation keeps the cache."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and body:
+            first = body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree, include_attributes=False)
+
+
 @functools.lru_cache(maxsize=None)
 def code_version(backend: str = "dolfinx") -> str:
-    """SHA-256 (first 16 hex digits) of the source files of :data:`CODE` for ``backend``."""
+    """SHA-256 (first 16 hex digits) of the code of the source files of :data:`CODE` for
+    ``backend``: their syntax trees without docstrings and comments (:func:`code_text`)."""
     root = pathlib.Path(__file__).resolve().parent.parent
     digest = hashlib.sha256()
     for name in CODE[backend]:
         digest.update(name.encode())
-        digest.update((root / name).read_bytes())
+        digest.update(code_text((root / name).read_text(encoding="utf-8")).encode())
     return digest.hexdigest()[:16]
 
 
