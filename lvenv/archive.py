@@ -24,7 +24,7 @@ import numpy as np
 
 from lvenv.validation import InputError
 
-__all__ = ["ArchiveError", "save", "load", "META", "save_records", "load_records"]
+__all__ = ["ArchiveError", "save", "load", "META", "save_records", "load_records", "write_text"]
 
 META = "__meta__"
 
@@ -46,6 +46,24 @@ def save(path: str | os.PathLike[str], arrays: dict[str, Any], meta: dict[str, A
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, **payload)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        pathlib.Path(tmp).unlink(missing_ok=True)
+        raise
+    return target
+
+
+def write_text(path: str | os.PathLike[str], text: str) -> pathlib.Path:
+    """Atomically write UTF-8 ``text`` to ``path`` (a JSON record, a CSV rewritten on resume),
+    the same way as :func:`save`: the old file or the new one, never half of one."""
+    target = pathlib.Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, target)

@@ -16,6 +16,7 @@ import pathlib
 from collections.abc import Mapping
 from typing import Any
 
+from lvenv import archive
 from lvenv.geometry import Geometry
 from lvenv.params import CellParams, Circulation, Heart, LOParams, validate
 from lvenv.validation import InputError, real
@@ -58,7 +59,7 @@ class TrainedLO:
     def to_json(self, path: str | pathlib.Path | None = None) -> str:
         text = json.dumps(self.to_dict(), indent=2)
         if path is not None:
-            pathlib.Path(path).write_text(text + "\n")
+            archive.write_text(path, text + "\n")
         return text
 
     @classmethod

@@ -56,10 +56,12 @@ input ``line``. Rows are written as patients finish; failed values are empty cel
 
 from __future__ import annotations
 
+import codecs
 import collections
 import csv
 import dataclasses
 import hashlib
+import io
 import json
 import math
 import os
@@ -71,7 +73,7 @@ from typing import Any
 
 import numpy as np
 
-from lvenv import presets
+from lvenv import archive, presets
 from lvenv.env.core import ENV_SCHEME
 from lvenv.env.vector import info_metrics
 from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
@@ -198,18 +200,32 @@ def _value(row: Mapping[str, str], column: str, required: bool) -> float | None:
     return value
 
 
+def _display_range(column: str, value: float, metric: Metric) -> None:
+    """``value`` (display units) inside the metric's target range, else InputError in the CSV's terms."""
+    lo, hi = (float(metric.to_display(b)) for b in metric.target)
+    real(column, value, lo, hi, lo_open=True)
+
+
 def _patient(row: Mapping[str, str], base: Heart) -> Patient:
-    """The patient of one report row (module docstring); InputError naming the column on bad input."""
+    """The patient of one report row (module docstring); InputError naming the column, in the
+    CSV's own units, on bad input."""
     v = {c: _value(row, c, c in REQUIRED) for c in (*REQUIRED[1:], "EDV_ml", "ESV_ml")}
     if not EF_MIN * 100.0 < v["EF_pct"] <= 100.0:
         raise InputError(f"EF_pct = {v['EF_pct']:g} must lie in ({100 * EF_MIN:g}, 100] (a percentage; 0.6 would be 0.6 %)")
-    for column in ("ET_ms", "IVRT_ms", "SBP_mmHg", "DBP_mmHg", "EDV_ml", "ESV_ml"):
-        if v[column] is not None and v[column] <= 0.0:
-            raise InputError(f"{column} = {v[column]:g} must be positive")
-    if not v["DBP_mmHg"] < v["SBP_mmHg"]:
-        raise InputError(f"DBP_mmHg = {v['DBP_mmHg']:g} must be below SBP_mmHg = {v['SBP_mmHg']:g}")
     hr_lo, hr_hi = ranges()["HR"][:2]
     real("HR_bpm", v["HR_bpm"], hr_lo, hr_hi)
+    for t in TARGETS:
+        if t.label not in _CUFF and t.column != "EF_pct" and v[t.column] is not None:
+            _display_range(t.column, v[t.column], t.metric)
+    _display_range("SBP_mmHg", v["SBP_mmHg"], METRICS["P_ao_sys"])
+    _display_range("DBP_mmHg", v["DBP_mmHg"], METRICS["P_ao_dia"])
+    if not v["DBP_mmHg"] < v["SBP_mmHg"]:
+        raise InputError(f"DBP_mmHg = {v['DBP_mmHg']:g} must be below SBP_mmHg = {v['SBP_mmHg']:g}")
+    if v["ESV_ml"] is not None and v["EDV_ml"] is not None and not v["ESV_ml"] < v["EDV_ml"]:
+        raise InputError(f"ESV_ml = {v['ESV_ml']:g} must be below EDV_ml = {v['EDV_ml']:g}")
+    period_ms = 60e3 / v["HR_bpm"]
+    if v["ET_ms"] + v["IVRT_ms"] > period_ms:
+        raise InputError(f"ET_ms + IVRT_ms = {v['ET_ms'] + v['IVRT_ms']:g} ms must not exceed one beat, {period_ms:g} ms at HR_bpm = {v['HR_bpm']:g}")
     targets = {t.obs: float(t.metric.from_display(v[t.column])) for t in TARGETS if t.label not in _CUFF and v[t.column] is not None}
     targets["P_ao_dia"], targets["P_ao_mean"] = cuff_targets(v["SBP_mmHg"], v["DBP_mmHg"])
     weights = {}
@@ -218,12 +234,50 @@ def _patient(row: Mapping[str, str], base: Heart) -> Patient:
         if w is not None:
             if t.obs not in targets:
                 raise InputError(f"w_{t.label} = {w:g} weights a target the row does not give ({t.column})")
-            weights[t.obs] = w
+            weights[t.obs] = real(f"w_{t.label}", w, 0.0)
+    if weights and not any(weights.get(k, 1.0) > 0.0 for k in targets):
+        raise InputError(f"{', '.join(f'w_{t.label}' for t in TARGETS if t.obs in weights)} are all zero: at least one target needs a positive weight")
     geometry = {field: _value(row, column, False) for column, field in GEOMETRY_COLUMNS.items()}
     heart = base.replace(HR=v["HR_bpm"])
     if any(g is not None for g in geometry.values()):
-        heart = dataclasses.replace(heart, geometry=dataclasses.replace(base.geometry, **{k: g for k, g in geometry.items() if g is not None}))
+        try:
+            shape = dataclasses.replace(base.geometry, **{k: g for k, g in geometry.items() if g is not None})
+        except InputError as err:  # the geometry's fields are the columns' (mm, deg) under other names
+            message = str(err)
+            for column, field in GEOMETRY_COLUMNS.items():
+                message = message.replace(f"geometry.{field} ", f"{column} ")
+            raise InputError(message) from None
+        heart = dataclasses.replace(heart, geometry=shape)
     return Patient(str(row["id"]).strip(), heart, targets, weights)
+
+
+def _text(path: Path) -> str:
+    """A report file's text: UTF-8 (a byte-order mark is dropped) or UTF-16 with its mark;
+    :class:`CohortError` naming the file and what to do for anything else (a binary file,
+    another encoding)."""
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise CohortError(f"cannot read the report file {str(path)!r}: {err.strerror or err}") from None
+    utf16 = data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE))
+    if not utf16 and b"\x00" in data:
+        raise CohortError(f"{str(path)!r} is not a text file (it holds NUL bytes); save the reports as CSV text")
+    try:
+        return data.decode("utf-16" if utf16 else "utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = data[:err.start].count(b"\n") + 1
+        raise CohortError(f"{str(path)!r} is not UTF-8 text: byte 0x{data[err.start]:02x} on line {line} ({err.reason}); "
+                          "save it as 'CSV UTF-8' (a Latin-1 or Windows-1252 export is the usual cause)") from None
+
+
+def _separator_hint(path: Path, header: str) -> str:
+    """Why a header lacks the required columns, when the file uses another separator than commas."""
+    for separator, name, cause in ((";", "semicolons", "a spreadsheet in a locale whose decimal mark is a comma saves CSV that way"),
+                                   ("\t", "tabs", "a spreadsheet's 'Unicode text' or TSV export")):
+        if header.count(separator) > header.count(","):
+            return (f"{str(path)!r} separates its fields by {name}, not commas ({cause}); save it as CSV with commas between "
+                    "fields and points as the decimal mark")
+    return ""
 
 
 def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Reports:
@@ -231,15 +285,16 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Rep
     :class:`CohortError` naming the missing columns; a bad row is listed in ``bad``."""
     base = presets.normal() if base is None else base
     path = Path(path)
-    try:
-        handle = path.open(newline="")
-    except OSError as err:
-        raise CohortError(f"cannot read the report file {str(path)!r}: {err.strerror or err}") from None
-    with handle:
+    text = _text(path)
+    with io.StringIO(text, newline="") as handle:
         reader = csv.DictReader(handle)
-        columns = [c.strip() for c in (reader.fieldnames or [])]
+        try:
+            columns = [c.strip() for c in (reader.fieldnames or [])]
+        except csv.Error as err:
+            raise CohortError(f"{str(path)!r}: the header on line 1 is not CSV ({err})") from None
         if missing := [c for c in REQUIRED if c not in columns]:
-            raise CohortError(f"{str(path)!r} lacks the required column(s) {missing}; required: {list(REQUIRED)}")
+            hint = _separator_hint(path, text.partition("\n")[0])
+            raise CohortError(hint or f"{str(path)!r} lacks the required column(s) {missing}; required: {list(REQUIRED)}")
         if len(set(columns)) != len(columns):
             raise CohortError(f"{str(path)!r} repeats a column name: {columns}")
         reader.fieldnames = columns
@@ -247,7 +302,7 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Rep
         if clash := sorted(set(extra_columns) & set(output_columns(()))):
             raise CohortError(f"{str(path)!r} has the column(s) {clash}, which the output writes itself; rename them")
         rows, bad, seen = [], [], {}
-        for row in reader:
+        for row in _rows_of(reader, path, bad):
             line = reader.line_num
             rid = (row.get("id") or "").strip()
             try:
@@ -266,6 +321,20 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Rep
             seen[rid] = line
             rows.append(Report(line, rid, patient, {c: row.get(c) or "" for c in extra_columns}))
     return Reports(rows, bad, extra_columns)
+
+
+def _rows_of(reader: csv.DictReader, path: Path, bad: list[BadRow]) -> Iterator[dict[str, str]]:
+    """The reader's rows; a row the csv module cannot parse (an unclosed quote runs to the end of
+    the file) becomes a bad row and ends the file."""
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as err:
+            bad.append(BadRow(reader.line_num, "", f"not CSV from here on ({err}); the rest of {str(path)!r} is skipped"))
+            return
+        yield row
 
 
 @dataclasses.dataclass(frozen=True)
@@ -506,18 +575,42 @@ def _meta(reports_path: Path, options: CohortOptions) -> dict[str, Any]:
     return {"reports_sha256": digest, "options": options.to_dict()}
 
 
+#: How the output CSV is written: the csv module's quoting for every header and cell, one line ending.
+_DIALECT = dict(lineterminator="\n", quoting=csv.QUOTE_MINIMAL)
+
+
+def _csv_text(records: Sequence[Sequence[str]]) -> str:
+    with io.StringIO(newline="") as text:
+        csv.writer(text, **_DIALECT).writerows(records)
+        return text.getvalue()
+
+
 def _finished(out: Path, columns: list[str]) -> set[str]:
-    """Ids already in ``out``; a torn last line (a killed run) is dropped from the file."""
-    text = out.read_text()
-    if text and not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]
-        out.write_text(text)
-    lines = text.splitlines()
-    if not lines:
-        return set()
-    if next(csv.reader([lines[0]])) != columns:
+    """Ids already in ``out``; a torn last record (a killed run) is dropped from the file."""
+    with out.open(newline="", encoding="utf-8") as handle:
+        text = handle.read()
+    records: list[list[str]] = []
+    torn = False
+    try:
+        records.extend(csv.reader(io.StringIO(text, newline=""), strict=True))
+    except csv.Error:  # the file ends inside a quoted cell
+        torn = True
+    if not torn and records and (not text.endswith("\n") or len(records[-1]) != len(columns)):
+        records.pop()
+        torn = True
+    if torn:
+        archive.write_text(out, _csv_text(records or [columns]))
+    if records and records[0] != columns:
         raise CohortError(f"{str(out)!r} has other columns than this run would write; delete it or choose another --out")
-    return {row["id"] for row in csv.DictReader(lines)}
+    return {r[0] for r in records[1:]}
+
+
+def _stored_meta(meta_path: Path) -> Any:
+    """The run record next to an output, or None when it is missing or not JSON."""
+    try:
+        return json.loads(meta_path.read_text(encoding="utf-8"))
+    except (FileNotFoundError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
 
 
 def run_cohort(
@@ -555,22 +648,24 @@ def run_cohort(
     meta_path = out.with_name(out.name + ".json")
     meta = _meta(reports_path, options)
     done: set[str] = set()
-    if out.exists() and out.stat().st_size:
-        if not meta_path.exists() or json.loads(meta_path.read_text()) != meta:
-            raise CohortError(f"{str(out)!r} was written for another report file or other options "
-                              f"(see {str(meta_path)!r}); delete both or choose another --out")
-        done = _finished(out, columns)
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        meta_path.write_text(json.dumps(meta, indent=2))
-        out.write_text(",".join(columns) + "\n")
+    try:
+        if out.exists() and out.stat().st_size:
+            if _stored_meta(meta_path) != meta:
+                raise CohortError(f"{str(out)!r} was written for another report file or other options "
+                                  f"(see {str(meta_path)!r}); delete both or choose another --out")
+            done = _finished(out, columns)
+        else:
+            archive.write_text(meta_path, json.dumps(meta, indent=2))
+            archive.write_text(out, _csv_text([columns]))
+    except (OSError, UnicodeDecodeError) as err:
+        raise CohortError(f"cannot write the output {str(out)!r} (or {str(meta_path)!r}): {getattr(err, 'strerror', None) or err}") from None
     pending = [r for r in parsed.rows if r.id not in done]
     total = len(parsed.rows)
     count = total - len(pending)
     if progress is not None:
         progress(count, total, None)
-    with out.open("a", newline="") as handle:
-        writer = csv.DictWriter(handle, columns)
+    with out.open("a", newline="", encoding="utf-8") as handle:
+        writer = csv.DictWriter(handle, columns, **_DIALECT)
 
         def write(result: dict[str, Any]) -> None:
             nonlocal count
@@ -610,7 +705,7 @@ def _distributed(pending: list[Report], options: CohortOptions, write: Callable[
 
 def summarise(out_path: str | os.PathLike[str]) -> dict[str, Any]:
     """Counts and the mismatch distribution (median, 95th percentile, max) of an output CSV."""
-    with Path(out_path).open(newline="") as handle:
+    with Path(out_path).open(newline="", encoding="utf-8") as handle:
         rows = list(csv.DictReader(handle))
     mismatch = np.array([float(r["mismatch"]) if r["mismatch"] else np.inf for r in rows])
     status = collections.Counter(r["status"] for r in rows)

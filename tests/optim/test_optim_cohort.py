@@ -62,11 +62,13 @@ BAD = [
     (["D", "58", "290", "85", "high", "78", "64", "x"], "SBP_mmHg = 'high' is not a number"),
     (["E", "160", "290", "85", "124", "78", "64", "x"], "EF_pct = 160 must lie in (2, 100]"),
     (["F", "0.6", "290", "85", "124", "78", "64", "x"], "0.6 would be 0.6 %"),
-    (["G", "58", "290", "-85", "124", "78", "64", "x"], "IVRT_ms = -85 must be positive"),
+    (["G", "58", "290", "-85", "124", "78", "64", "x"], r"IVRT_ms = -85.0 must be a finite real number in (0, 3000]"),
     (["H", "58", "290", "85", "78", "124", "64", "x"], "DBP_mmHg = 124 must be below SBP_mmHg = 78"),
     (["A", "58", "290", "85", "124", "78", "64", "x"], "id 'A' repeats the row on line 2"),
     (["I", "58", "290", "85", "124", "78", "400", "x"], "HR_bpm = 400"),
-    (["J", "58", "900", "300", "124", "78", "100", "x"], "add up to more than one beat"),
+    (["J", "58", "900", "300", "124", "78", "100", "x"], "ET_ms + IVRT_ms = 1200 ms must not exceed one beat, 600 ms at HR_bpm = 100"),
+    (["N", "58", "290", "85", "700", "500", "64", "x"], "SBP_mmHg = 700.0 must be a finite real number in (0, 300.025]"),
+    (["O", "58", "4000", "85", "124", "78", "20", "x"], "ET_ms = 4000.0 must be a finite real number in (0, 3000]"),
     (["K", "58", "290"], "3 fields for 8 columns"),
     (["L", "58", "290", "85", "124", "78", "64", "x", "surplus"], "9 fields for 8 columns"),
     (["", "58", "290", "85", "124", "78", "64", "x"], "id is missing"),
@@ -80,6 +82,7 @@ def test_each_bad_row_is_reported_with_its_line_and_reason_and_the_rest_are_kept
     assert [b.line for b in parsed.bad] == list(range(3, 3 + len(BAD)))
     for bad, (_, reason) in zip(parsed.bad, BAD):
         assert reason in bad.reason, (bad, reason)
+        assert "patient" not in bad.reason and "kPa" not in bad.reason, "the CSV's own columns and units"
 
 
 def test_a_file_without_a_required_column_is_refused_naming_it(tmp_path):
