@@ -99,10 +99,10 @@ def run(
     passive = isinstance(record, Passive)
     if backend == "multielement":
         if activation != "eikonal":
-            raise ValueError(f"activation = {activation!r} applies to backend 'dolfinx' only; the multielement backend has no activation sequence")
+            raise InputError(f"activation = {activation!r} applies to backend 'dolfinx' only; the multielement backend has no activation sequence")
         return _run_multielement(geometry, record, cell, arrangement, n_elements, lo, dt=dt, beats=int(beats), duration=duration, cache_dir=cache_dir, use_cache=use_cache)
     if (arrangement, n_elements, lo) != (None, None, None):
-        raise ValueError(f"arrangement, n_elements and lo apply to backend 'multielement' only, not {backend!r}")
+        raise InputError(f"arrangement, n_elements and lo apply to backend 'multielement' only, not {backend!r}")
     material = Guccione() if material is None else material
     inputs = {
         "backend": backend,
@@ -168,7 +168,7 @@ def _run_multielement(geometry, record, cell, arrangement, n_elements, lo, *, dt
     arr = be.arrangement(arrangement, n_elements)
     lo = be.default_lo(geometry) if lo is None else lo
     if not isinstance(lo, LOParams):
-        raise ValueError(f"lo = {lo!r} must be an lvenv.params.LOParams or None")
+        raise InputError(f"lo = {lo!r} must be an lvenv.params.LOParams or None")
     passive = isinstance(record, Passive)
     inputs = {"backend": "multielement", "geometry": geometry, "case": record, "arrangement": arr, "lo": lo}
     if not passive:

@@ -17,7 +17,7 @@ import dataclasses
 import lvenv  # noqa: F401
 from lvenv import presets
 from lvenv.params import Circulation
-from lvenv.validation import integer, real
+from lvenv.validation import InputError, integer, real
 
 __all__ = ["Passive", "training_condition", "resolve_case", "N_UNLOADED", "HF_UNLOADED"]
 
@@ -53,7 +53,7 @@ class Passive:
 def training_condition(k: int) -> Circulation:
     """The open-loop circulation of Table 2 condition ``k`` ∈ {1, 2, 3} (``lvenv.presets``)."""
     if k not in presets.TRAINING_CONDITIONS:
-        raise ValueError(f"training condition must be 1, 2 or 3, got {k!r}")
+        raise InputError(f"training condition must be 1, 2 or 3, got {k!r}")
     return presets.training_condition(k).circulation
 
 
@@ -62,9 +62,9 @@ def resolve_case(case) -> Passive | Circulation:
     if isinstance(case, str):
         if case == "passive":
             return Passive()
-        raise ValueError(f"case must be 'passive', 1, 2, 3, a Passive or a Circulation record, got {case!r}")
+        raise InputError(f"case must be 'passive', 1, 2, 3, a Passive or a Circulation record, got {case!r}")
     if isinstance(case, (Passive, Circulation)):
         return case
     if isinstance(case, int) and not isinstance(case, bool):
         return training_condition(case)
-    raise ValueError(f"case must be 'passive', 1, 2, 3, a Passive or a Circulation record, got {case!r}")
+    raise InputError(f"case must be 'passive', 1, 2, 3, a Passive or a Circulation record, got {case!r}")

@@ -5,9 +5,12 @@ Exit codes (also in ``lvenv --help``):
 ====  ======================================================================================
 0     everything computed and usable
 1     a computation failed: a member's status is not ``ok`` / ``not_converged``, or ``reach``
-      missed its targets by more than 1 %
+      missed its targets by more than 1 %; or the command was interrupted (Ctrl-C ends it
+      within a second or two, :mod:`lvenv.interrupt`)
 2     a usage error: an unknown option or parameter, or a value outside what is allowed
-      (the message names the field, the value and what is allowed)
+      (the message names the field, the value and what is allowed), or an output path that
+      cannot be written (checked before computing; a write that fails all the same is
+      reported after the result is printed)
 3     an internal error (a bug): the traceback is printed
 ====  ======================================================================================
 
@@ -34,6 +37,7 @@ import math
 import sys
 import time
 import traceback
+import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
@@ -52,7 +56,7 @@ from lvenv.plausibility import report as plausibility_report
 from lvenv.env.core import ENV_SCHEME
 from lvenv.simulation import MAX_BEATS, MAX_STEPS_PER_BEAT, MIN_STEPS_PER_BEAT, SCHEMES, Traces, simulate
 from lvenv.status import is_usable
-from lvenv.validation import InputError
+from lvenv.validation import InputError, writable
 
 __all__ = ["main", "app", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_INTERNAL"]
 
@@ -132,10 +136,46 @@ def _parse_settings(items: Sequence[str]) -> dict[str, float]:
 
 
 def _plot_suffix(ctx, param, value):
-    """A --plot path must end in .png or .pdf (checked before any long computation)."""
+    """A --plot path must end in .png or .pdf and be writable (checked before any long computation)."""
     if value is not None and not value.lower().endswith(plots.SUFFIXES):
         raise click.BadParameter(f"{value!r} must end in one of {plots.SUFFIXES}")
+    return _writable_file(ctx, param, value)
+
+
+def _writable_file(ctx, param, value):
+    """An output file's path, checked writable before any long computation (a usage error, exit 2)."""
+    if value is not None:
+        try:
+            writable(f"--{param.name.replace('_path', '').replace('_', '-')}", value)
+        except InputError as err:
+            raise click.BadParameter(str(err)) from None
     return value
+
+
+def _writable_folder(ctx, param, value):
+    """An output folder's path, checked writable before any long computation."""
+    if value is not None:
+        try:
+            writable(f"--{param.name.replace('_dir', '')}", value, folder=True)
+        except InputError as err:
+            raise click.BadParameter(str(err)) from None
+    return value
+
+
+def _save(unsaved: list[str], option: str, path, write) -> None:
+    """Run ``write()``; if it fails all the same (the disk filled up, the folder went away), keep a
+    message naming the option and path for :func:`_finish`, so that the result is still printed."""
+    try:
+        write()
+    except OSError as err:
+        unsaved.append(f"lvenv: error: cannot write {option} {str(path)!r}: {err.strerror or err}")
+
+
+def _finish(code: int, unsaved: Sequence[str]) -> int:
+    """The exit code after the result is printed: a usage error (2) if an output was not written."""
+    for message in unsaved:
+        _err.print(message, markup=False, soft_wrap=True)
+    return EXIT_USAGE if unsaved else code
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]}, epilog=_EPILOG)
@@ -143,7 +183,11 @@ def _plot_suffix(ctx, param, value):
 def app(no_jit_cache: bool) -> None:
     """Low-order LV heart (Di Achille et al. 2020) in JAX: simulate, fit patients and cohorts."""
     if not no_jit_cache:
-        jitcache.enable()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", jitcache.JitCacheWarning)
+            jitcache.enable()
+        for warning in caught:
+            _err.print(f"lvenv: warning: {warning.message}", markup=False, soft_wrap=True)
 
 
 @app.command("presets", epilog=_EPILOG)
@@ -200,13 +244,14 @@ def simulate_command(preset, patient_file, condition, settings, beats, max_beats
     heart = heart.replace(**_parse_settings(settings))
     with _working("simulating"):
         res = simulate(heart, beats=beats, max_beats=max_beats, steps_per_beat=steps_per_beat, traces=plot_path is not None)
+    unsaved: list[str] = []
     if plot_path is not None and is_usable(res.status):
-        plots.beat_figure(res.traces, plot_path, f"{name}: EF {100 * res.metrics['EF']:.0f} %")
+        _save(unsaved, "--plot", plot_path, lambda: plots.beat_figure(res.traces, plot_path, f"{name}: EF {100 * res.metrics['EF']:.0f} %"))
     if as_json:
         _print_json({"metrics": res.metrics, "status": res.status, "converged": bool(res.converged), "beats": int(res.beats)})
     else:
         _out().print(_metrics_table(f"{name}: {res.beats} beats", [(name, res.metrics, res.status)]))
-    return EXIT_OK if is_usable(res.status) else EXIT_FAILED
+    return _finish(EXIT_OK if is_usable(res.status) else EXIT_FAILED, unsaved)
 
 
 @app.command("reach", epilog=_EPILOG)
@@ -271,7 +316,7 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--plausibility/--no-plausibility", default=True, show_default=True,
               help="keep mean atrial pressure and EDP within 4–25 mmHg in the objective (lvenv.plausibility)")
 @click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
-@click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None,
+@click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, callback=_writable_folder,
               help="write the identifiability report at the fit to this folder: profiles, posterior, markdown and PNG (minutes)")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
 @click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
@@ -304,11 +349,14 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
                "status": res.status, "evaluations": res.evaluations, "wall_time_s": res.wall_time, "compile_time_s": compile_time,
                "plausibility": plausibility_report(res.observation, plausibility)}
     heart = record.heart.replace(**res.parameters) if ok else None
+    unsaved: list[str] = []
     if convergence_path is not None:
-        plots.convergence_figure({method: res.history.best_mismatch_so_far()}, convergence_path, f"{record.name}: {method}, {num_envs} envs")
+        _save(unsaved, "--convergence", convergence_path,
+              lambda: plots.convergence_figure({method: res.history.best_mismatch_so_far()}, convergence_path, f"{record.name}: {method}, {num_envs} envs"))
     if plot_path is not None and ok:
         beat = simulate(heart, steps_per_beat=steps_per_beat)
-        plots.fit_figure(beat.traces, beat.metrics, res.targets, plot_path, f"{record.name}: {method} fit, mismatch {100 * res.mismatch:.2f} %")
+        _save(unsaved, "--plot", plot_path,
+              lambda: plots.fit_figure(beat.traces, beat.metrics, res.targets, plot_path, f"{record.name}: {method} fit, mismatch {100 * res.mismatch:.2f} %"))
     if identifiability and ok:
         from optim.identify import sensitivity
 
@@ -322,8 +370,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 
         options = CohortOptions(budget=480, stop_mismatch=0.0, plausibility=plausibility, seed=seed)
         with _working("profiles and posterior for the identifiability report"):
-            payload["report"] = str(write_report(record, res.parameters, res.observation, report_dir, options=options,
-                                                 posterior_options={"plausibility": plausibility, "seed": seed}))
+            _save(unsaved, "--report", report_dir, lambda: payload.update(report=str(write_report(
+                record, res.parameters, res.observation, report_dir, options=options, posterior_options={"plausibility": plausibility, "seed": seed}))))
     if fidelity and ok:
         try:
             from optim.congruency import check_fidelity
@@ -332,7 +380,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
             raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
     if as_json:
         _print_json(payload)
-        return EXIT_OK if ok else EXIT_FAILED
+        return _finish(EXIT_OK if ok else EXIT_FAILED, unsaved)
     out = _out()
     out.print(f"{record.name}: {method}, {res.evaluations} evaluations in {res.wall_time:.1f} s "
               f"(+ {compile_time:.1f} s compiling); mismatch {100 * res.mismatch:.2f} %, status {res.status}")
@@ -362,12 +410,12 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         out.print(f"fidelity against the 3-D oracle (h = {fidelity_mesh:g} mm): C {100 * fid['C']:.2f} %, {'within' if fid['ok'] else 'OUTSIDE'} tolerance")
         for name, (lo, fe, diff) in fid["rows"].items():
             out.print(f"  {header(name):18s} LO {display(name, lo):>8s}  FE {display(name, fe):>8s}  {'ok' if fid['within'][name] else 'OUT'}")
-    return EXIT_OK if ok else EXIT_FAILED
+    return _finish(EXIT_OK if ok else EXIT_FAILED, unsaved)
 
 
 @app.command("cohort", epilog=_EPILOG)
 @click.argument("reports", type=click.Path(exists=True, dir_okay=False))
-@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="output CSV (resumed if it exists)")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, callback=_writable_file, help="output CSV (resumed if it exists)")
 @click.option("--budget", type=click.IntRange(min=8), default=None, help="evaluations per patient, at most [default: optim.cohort.CohortOptions]")
 @click.option("--candidates", type=click.IntRange(min=2), default=None, help="env members per patient (CMA-ES population)")
 @click.option("--slots", type=click.IntRange(min=1), default=None, help="patients fitted at once per process")
@@ -423,7 +471,7 @@ def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, 
 
 @app.command("train", epilog=_EPILOG)
 @click.argument("heart", type=click.Choice(BUILTIN))
-@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, help="the trained record (JSON; lvenv.trained.TrainedLO)")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, callback=_writable_file, help="the trained record (JSON; lvenv.trained.TrainedLO)")
 @click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default="dolfinx", show_default=True, help="the oracle to train against")
 @click.option("--arrangement", type=click.Choice(("parallel", "series")), default=None, help="multi-element arrangement (backend multielement)")
 @click.option("--mesh-size", type=click.FloatRange(min=1.0), default=None, help="FE mesh size h (mm; backend dolfinx) [default: the oracle's, 6]")
@@ -438,9 +486,10 @@ def train_command(heart, out_path, backend, arrangement, mesh_size, budget, dela
     oracle = {k: v for k, v in {"arrangement": arrangement, "mesh_size": mesh_size}.items() if v is not None}
     t0 = time.perf_counter()
     trained = train(builtin(heart).heart.geometry, backend, budget=budget, delay=delay, seed=seed, progress=_err.is_terminal, **oracle)
-    trained.to_json(out_path)
+    unsaved: list[str] = []
+    _save(unsaved, "--out", out_path, lambda: trained.to_json(out_path))
     c = trained.congruency.get("C", math.nan)
-    if as_json:
+    if as_json or unsaved:  # the record itself, so that a failed write loses nothing
         click.echo(trained.to_json())
     else:
         table = Table(title=f"{heart} trained against {backend}: C = {100 * c:.2f} % ({time.perf_counter() - t0:.0f} s) → {out_path}", title_justify="left")
@@ -451,7 +500,7 @@ def train_command(heart, out_path, backend, arrangement, mesh_size, budget, dela
             table.add_row(str(run), f"{100 * value:.2f}", f"{100 * without[run]:.2f}" if run in without else "—")
         _out().print(table)
         _out().print(", ".join(f"{k} {v:.4g}" for k, v in dataclasses.asdict(trained.lo).items()))
-    return EXIT_OK if math.isfinite(c) else EXIT_FAILED
+    return _finish(EXIT_OK if math.isfinite(c) else EXIT_FAILED, unsaved)
 
 
 @app.command("oracle", epilog=_EPILOG)
@@ -495,21 +544,22 @@ def oracle_command(heart, case, backend, mesh_size, beats, plot_path, as_json) -
     fe_metrics = fe_oracle.beat_metrics(result)
     lo_run = simulate(lo_case, beats=beats)
     valid, fe_status = bool(fe_metrics.pop("valid")), fe_metrics.pop("status")
+    unsaved: list[str] = []
     if plot_path is not None:
         period = float(result.metadata["period_s"])
         tr = result.traces
         last = tr["t"] >= tr["t"][-1] - period - 1e-9
         fe_traces = Traces(tr["t"][last] - tr["t"][last][0], tr["V"][last], tr["P_lv"][last], tr["P_ao"][last])
-        plots.lo_fe_figure(lo_run.traces, fe_traces, plot_path, f"{heart}, case {case}: FE (solid) and LO (dashed)")
+        _save(unsaved, "--plot", plot_path, lambda: plots.lo_fe_figure(lo_run.traces, fe_traces, plot_path, f"{heart}, case {case}: FE (solid) and LO (dashed)"))
     if as_json:
         _print_json({"case": case, "backend": backend, "fe": fe_metrics, "fe_valid": valid, "fe_status": fe_status, "lo": lo_run.metrics, "lo_status": lo_run.status,
                      "from_cache": result.from_cache, "key": result.metadata.get("key"), "wall_time_s": time.perf_counter() - t0})
-        return EXIT_OK if valid else EXIT_FAILED
+        return _finish(EXIT_OK if valid else EXIT_FAILED, unsaved)
     rows = [(f"FE ({backend})", {k: float(fe_metrics.get(k, math.nan)) for k in SUMMARY_NAMES}, fe_status),
             ("LO", lo_run.metrics, lo_run.status)]
     cached = ", cached" if result.from_cache else ""
     _out().print(_metrics_table(f"{heart}, case {case}: last beat ({time.perf_counter() - t0:.1f} s{cached})", rows))
-    return EXIT_OK if valid else EXIT_FAILED
+    return _finish(EXIT_OK if valid else EXIT_FAILED, unsaved)
 
 
 #: Benchmarks of ``lvenv bench NAME``: scripts/bench_NAME.py of the source tree.
@@ -543,7 +593,7 @@ def bench_command(name, args) -> int:
 
 @app.command("report", epilog=_EPILOG)
 @click.option("--root", type=click.Path(file_okay=False), default="out", show_default=True, help="where the experiments left their results")
-@click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="the report [default: ROOT/report/report.md]")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, callback=_writable_file, help="the report [default: ROOT/report/report.md]")
 @click.option("--json", "as_json", is_flag=True, help="print the report's path as JSON")
 def report_command(root, out_path, as_json) -> int:
     """Rebuild one markdown report of every experiment (congruency, generalisation, multi-element,

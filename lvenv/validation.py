@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
+import pathlib
 from collections.abc import Collection
 from typing import Any
 
 import numpy as np
 
-__all__ = ["InputError", "integer", "real", "choice", "real_array"]
+__all__ = ["InputError", "integer", "real", "choice", "real_array", "writable"]
 
 
 class InputError(ValueError):
@@ -87,3 +89,26 @@ def real_array(name: str, value: Any) -> np.ndarray:
     if arr.dtype.kind not in "iuf":
         raise InputError(f"{name} = {value!r} must be a real number or an array of real numbers (got dtype {arr.dtype})")
     return arr.astype(np.float64)
+
+
+def writable(name: str, path: str | os.PathLike[str], *, folder: bool = False) -> pathlib.Path:
+    """``path`` as a Path that can be written (a file, or with ``folder`` a folder): it exists and
+    is writable, or its nearest existing parent is a writable folder (missing folders are made
+    when written). Else :class:`InputError` naming ``name``, the path and why. Creates nothing:
+    call it before a long computation whose result goes there."""
+    target = pathlib.Path(path).expanduser()
+    kind = "a folder" if folder else "a file"
+    if target.exists():
+        if target.is_dir() != folder:
+            raise InputError(f"{name} = {str(path)!r} must be {kind}, and it is {'a folder' if target.is_dir() else 'a file'}")
+        if not os.access(target, os.W_OK):
+            raise InputError(f"{name} = {str(path)!r} is not writable")
+        return target
+    parent = target.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{name} = {str(path)!r} cannot be made: {str(parent)!r} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{name} = {str(path)!r} cannot be written: the folder {str(parent)!r} is not writable")
+    return target

@@ -63,7 +63,7 @@ from lvenv.identification import ParameterSpace
 from lvenv.metrics import OBS_NAMES
 from lvenv.patients import Patient
 from lvenv.status import is_usable
-from lvenv.validation import integer
+from lvenv.validation import InputError, integer
 from optim.methods import METHODS, make_optimizer
 from optim.protocol import (
     BatchEvaluation,
@@ -206,21 +206,21 @@ class EnvObjective:
 def _patient(venv: Any) -> Patient:
     patients = list(getattr(_unwrap(venv), "patients", []))
     if not patients:
-        raise ValueError("minimize needs an lvenv vector env (gymnasium.make_vec('lvenv/LVHeart-v0', ...))")
+        raise InputError("minimize needs an lvenv vector env (gymnasium.make_vec('lvenv/LVHeart-v0', ...))")
     if any(p != patients[0] for p in patients[1:]):
-        raise ValueError("minimize fits one patient: every member of the vector env must hold the same patient")
+        raise InputError("minimize fits one patient: every member of the vector env must hold the same patient")
     return patients[0]
 
 
 def _check_env(venv: Any) -> None:
     env = _unwrap(venv)
     if env.config.autoreset:
-        raise ValueError(
+        raise InputError(
             "minimize needs autoreset_mode='Disabled' (every step must evaluate every member); "
             "build the env with gymnasium.make_vec(..., autoreset_mode='Disabled', tolerance=0.0)"
         )
     if env.config.max_episode_steps is not None:
-        raise ValueError("minimize needs max_episode_steps=None")
+        raise InputError("minimize needs max_episode_steps=None")
 
 
 def _options(method: str, options: dict[str, Any]) -> Any:
@@ -275,7 +275,7 @@ def minimize(
     built for optimisation; TypeError for an unknown option.
     """
     if not isinstance(method, str) or method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; choose one of {', '.join(map(repr, METHODS))}")
+        raise InputError(f"unknown method {method!r}; choose one of {', '.join(map(repr, METHODS))}")
     budget, seed = integer("budget", budget, 1), integer("seed", seed, 0)
     penalty = float(options.pop("penalty", 1.0))
     opts = _options(method, options)
@@ -286,12 +286,12 @@ def minimize(
     start = patient_values(venv)
     if x0 is not None:
         if unknown := sorted(set(x0) - set(space.names)):
-            raise ValueError(f"x0 names {unknown}, which are not action parameters {space.names}")
+            raise InputError(f"x0 names {unknown}, which are not action parameters {space.names}")
         start.update({k: float(v) for k, v in x0.items()})
     u_start = space.to_unit(space.clip(np.array([start[n] for n in space.names], float)))
     opt = make_optimizer(method, unit_bounds(space), env.num_envs, seed=seed, x0=u_start, penalty=penalty, options=opts)
     if budget < opt.min_budget:
-        raise ValueError(
+        raise InputError(
             f"budget = {budget} evaluations is below one batch of {opt.min_budget} "
             f"({method} with num_envs = {env.num_envs})"
         )

@@ -46,16 +46,11 @@ def test_an_overdriven_beat_is_non_physical_not_ok():
     assert 0.3 < res.metrics["EF"][0] < 0.8
 
 
-def test_a_heart_that_fills_by_suction_is_non_physical_not_ok(capsys):
+def test_a_heart_that_fills_by_suction_is_non_physical_not_ok():
     # R3 at 45× its default pools the blood behind it: the atrium would run at −21 mmHg
     res = lvenv.simulate([presets.normal(), presets.normal().replace(R3=10.0)], steps_per_beat=250, traces=False)
     assert res.status.tolist() == ["ok", "non_physical"]
     assert all(np.isnan(v[1]) for v in res.metrics.values()) and res.metrics["EDP"][0] > 0.0
-    from lvenv import cli
-
-    assert cli.main(["simulate", "--set", "R3=10", "--steps-per-beat", "250", "--json"]) == cli.EXIT_FAILED
-    payload = json.loads(capsys.readouterr().out)
-    assert payload["status"] == "non_physical" and payload["metrics"]["EDP"] is None
 
 
 def test_no_ok_beat_is_non_physical_over_random_hearts():

@@ -171,3 +171,55 @@ def test_oracle_and_train_commands_run_on_the_multielement_backend(tmp_path, cap
     trained = TrainedLO.from_json(out)
     assert trained.provenance["backend"] == "multielement" and 0.0 <= trained.congruency["C"] < 1.0
     assert cli.main(["bench", "nonsense"]) == cli.EXIT_USAGE
+
+
+def test_an_unwritable_output_is_refused_before_any_computation(tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    reports = tmp_path / "reports.csv"
+    reports.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg,HR_bpm\nA,58,290,85,124,78,64\n")
+    cases = [
+        ["simulate", "--plot", str(blocker / "beat.png")],
+        ["fit", "normal", "--convergence", str(blocker / "c.pdf")],
+        ["fit", "normal", "--report", str(blocker / "report")],
+        ["cohort", str(reports), "--out", str(blocker / "fits.csv")],
+        ["train", "normal", "--out", str(blocker / "trained.json")],
+        ["oracle", "normal", "--plot", str(blocker / "o.png")],
+        ["report", "--out", str(blocker / "report.md")],
+    ]
+    for argv in cases:
+        assert cli.main(argv) == cli.EXIT_USAGE, argv
+        captured = capsys.readouterr()
+        assert "Traceback" not in captured.err and not captured.out, argv
+        assert "is a file, not a folder" in captured.err or "must be a file, and it is a folder" in captured.err, (argv, captured.err)
+
+
+def test_a_write_that_fails_anyway_prints_the_result_and_names_the_path(tmp_path, monkeypatch, capsys):
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(cli.plots, "beat_figure", full_disk)
+    plot = tmp_path / "beat.png"
+    assert cli.main(["simulate", "--beats", "1", "--steps-per-beat", "100", "--plot", str(plot), "--json"]) == cli.EXIT_USAGE
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["status"] == "ok", "the result is printed"
+    assert f"cannot write --plot '{plot}': No space left on device" in captured.err and "Traceback" not in captured.err
+
+
+def test_an_unusable_jit_cache_warns_and_the_command_runs(tmp_path, monkeypatch, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    monkeypatch.setenv("LVENV_JIT_CACHE", str(blocker / "jax"))
+    assert cli.main(["simulate", "--help"]) == cli.EXIT_OK
+    captured = capsys.readouterr()
+    assert "lvenv: warning: the JAX compilation cache" in captured.err and "running without it" in captured.err
+    assert "Usage: lvenv simulate" in captured.out
+
+
+def test_a_budget_below_one_batch_is_a_usage_error_naming_the_field(monkeypatch, capsys):
+    import optim.fit
+
+    monkeypatch.setattr(optim.fit, "warm_up", lambda venv: 0.0)  # the check needs no compiled model
+    assert cli.main(["fit", "normal", "--budget", "16", "--num-envs", "32"]) == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "budget = 16 evaluations is below one batch of 32" in err and "Traceback" not in err
