@@ -80,7 +80,7 @@ from optim.cohort import GEOMETRY_COLUMNS
 
 __all__ = [
     "BOX", "DECIMALS", "DATASET", "FORMAT_VERSION", "CONTRACTION_LIMIT", "STATUSES", "COLUMNS", "Settings", "CampaignError",
-    "design", "run", "solve_anatomy", "read_index", "oracle_data", "throughput",
+    "design", "run", "solve_anatomy", "trace_archive", "read_index", "oracle_data", "throughput",
 ]
 
 #: Sampling box of the unloaded geometry (mm; e dimensionless; C0 degrees): the two Table 1
@@ -238,7 +238,7 @@ def solve_anatomy(task: Mapping[str, Any]) -> dict[str, Any]:
     runs = {case: oracle_cache.load(directory, key) for case, key in keys.items()}
     data = congruency.OracleData(geometry, CellParams(), runs["passive"], {k: runs[str(k)] for k in congruency.CONDITIONS}, settings.backend,
                                  settings.oracle_options())
-    out["traces"] = _trace_archive(data)
+    out["traces"] = trace_archive(data)
     v0 = cavity_volume(geometry)
     ratio = float(np.min(data.beats[2].traces["V"]) / v0)
     fields: dict[str, Any] = {"ESV2_over_V0": ratio, "fe_s": sum(fe_s.values()), "oracle_code": data.passive.metadata["code_version"]}
@@ -263,7 +263,7 @@ def solve_anatomy(task: Mapping[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _trace_archive(data: congruency.OracleData) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+def trace_archive(data: congruency.OracleData) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """The arrays and metadata of an anatomy's ``traces/<id>.npz``."""
     arrays = {"passive_P": data.passive.traces["P_lv"], "passive_V": data.passive.traces["V"], "passive_t": data.passive.traces["t"]}
     for k, result in data.beats.items():

@@ -114,3 +114,34 @@ def test_too_few_anatomies_make_no_regression(tmp_path):
     campaign.run(tmp_path, n=3, settings=Settings(backend="multielement", budget=16), limit=0)
     with pytest.raises(InputError, match="has 0 accepted training anatomies; a regression needs at least 10"):
         regression.fit(tmp_path)
+
+
+def test_held_out_anatomies_compare_predicted_trained_and_baseline_maps_on_their_own_traces(dataset, fitted, tmp_path):
+    """A held-out anatomy with real oracle traces (the multielement oracle, in-process) and maps
+    trained on them: its C is reproduced from the dataset, and the N record's maps do worse."""
+    import dataclasses
+    import shutil
+
+    from lvenv import archive
+    from lvenv.trained import builtin
+    from optim import congruency
+
+    dataset = shutil.copytree(dataset, tmp_path / "dataset")
+    rows = campaign.read_index(dataset)
+    row = next(r for r in rows if r["id"] == "H000")
+    geometry = Geometry(**{name: row[col] for col, name in GEOMETRY_COLUMNS.items()})
+    data = congruency.oracle_data(geometry, "multielement", n_elements=4, cache_dir=tmp_path / "cache", progress=False)
+    archive.save(dataset / "traces" / "H000.npz", *campaign.trace_archive(data))
+    trained = congruency.train_on(campaign.oracle_data(dataset, "H000"), start=builtin("normal").lo, budget=16, progress=False)
+    row.update(dataclasses.asdict(trained.lo), C=trained.congruency["C"])
+    others = [r for r in rows if r["split"] == "heldout" and r["id"] != "H000"]
+    for r in others:
+        r["status"] = "failed_fe"
+    with (dataset / "anatomies.csv").open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, campaign.COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows({k: "" if v is None else v for k, v in r.items()} for r in rows)
+    (result,) = regression.held_out(fitted, dataset)
+    assert result["id"] == "H000"
+    assert result["C_trained"] == pytest.approx(trained.congruency["C"], rel=1e-12)
+    assert result["C_baseline"] > 3 * result["C_trained"] and np.isfinite(result["C_predicted"])
