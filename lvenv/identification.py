@@ -26,7 +26,7 @@ from lvenv.params import locate
 from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError, real
 
-__all__ = ["Bound", "ACTION_BOUNDS", "DEFAULT_ACTION_PARAMS", "OBSERVATION_TARGETS", "ParameterSpace"]
+__all__ = ["Bound", "ACTION_BOUNDS", "DEFAULT_ACTION_PARAMS", "OBSERVATION_TARGETS", "ParameterSpace", "LOGIT_EDGE", "to_logit", "from_logit"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,3 +142,19 @@ class ParameterSpace:
         """Physical values clipped into the box."""
         xp, lo, hi, _, _ = self._arrays(x)
         return xp.clip(x, lo, hi)
+
+
+#: Unit-cube points are kept this far from the faces before the logit (the samplers' coordinates).
+LOGIT_EDGE = 1e-9
+
+
+def to_logit(u: np.ndarray) -> np.ndarray:
+    """Logit coordinates z = ln(u / (1 − u)) of unit-cube points ``u``, clipped :data:`LOGIT_EDGE` from the faces."""
+    u = np.clip(u, LOGIT_EDGE, 1.0 - LOGIT_EDGE)
+    return np.log(u) - np.log1p(-u)
+
+
+def from_logit(z: np.ndarray) -> np.ndarray:
+    """The unit-cube points of logit coordinates ``z``, kept :data:`LOGIT_EDGE` from the faces."""
+    with np.errstate(over="ignore"):  # exp(−z) = inf far below the cube gives 0, clipped
+        return np.clip(1.0 / (1.0 + np.exp(-z)), LOGIT_EDGE, 1.0 - LOGIT_EDGE)

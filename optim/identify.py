@@ -121,7 +121,7 @@ from typing import Any
 import numpy as np
 
 import lvenv
-from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
+from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace, from_logit, to_logit
 from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import Patient
 from lvenv.plausibility import Band, distance
@@ -414,7 +414,6 @@ def _climbing(log_prob: np.ndarray) -> bool:
 #: Chain moves: the independence proposal's share, the defensive component's weight and
 #: standard-deviation factor, and the random walk's covariance factor (module docstring).
 INDEPENDENCE_SHARE, DEFENSIVE_WEIGHT, DEFENSIVE_SCALE, WALK_SCALE = 0.8, 0.1, 2.0, 0.1
-_EDGE = 1e-9  # unit-cube draws are kept this far from the faces before the logit
 
 
 class _Mixture:
@@ -433,7 +432,7 @@ class _Mixture:
         and add the defensive component (module docstring)."""
         from sklearn.mixture import GaussianMixture
 
-        z = _logit(u)
+        z = to_logit(u)
         fits = [GaussianMixture(k, covariance_type="full", reg_covar=1e-6, random_state=seed).fit(z)
                 for k in range(1, min(max_components, max(1, len(z) // (4 * z.shape[1]))) + 1)]
         best = min(fits, key=lambda g: g.bic(z))
@@ -443,27 +442,16 @@ class _Mixture:
     def sample(self, n: int, random: np.random.RandomState) -> np.ndarray:
         k = random.choice(len(self.weights), size=n, p=self.weights / self.weights.sum())
         z = self.means[k] + np.einsum("nij,nj->ni", self.chol[k], random.standard_normal((n, self.means.shape[1])))
-        return _from_logit(z)
+        return from_logit(z)
 
     def log_density(self, u: np.ndarray) -> np.ndarray:
         from scipy.linalg import solve_triangular
         from scipy.special import logsumexp
 
-        z = _logit(u)
+        z = to_logit(u)
         per = np.stack([self._log_norm[k] - 0.5 * np.sum(solve_triangular(self.chol[k], (z - self.means[k]).T, lower=True) ** 2, axis=0)
                         for k in range(len(self.weights))], axis=1)
         return logsumexp(per, axis=1) - np.sum(np.log(u * (1.0 - u)), axis=1)
-
-
-def _logit(u: np.ndarray) -> np.ndarray:
-    u = np.clip(u, _EDGE, 1.0 - _EDGE)
-    return np.log(u) - np.log1p(-u)
-
-
-def _from_logit(z: np.ndarray) -> np.ndarray:
-    """The unit-cube points of logit coordinates ``z``, kept :data:`_EDGE` from the faces."""
-    with np.errstate(over="ignore"):  # exp(−z) = inf far below the cube gives 0, clipped
-        return np.clip(1.0 / (1.0 + np.exp(-z)), _EDGE, 1.0 - _EDGE)
 
 
 def _chain_moves(pilot: np.ndarray, seed: int) -> list:
@@ -705,10 +693,10 @@ def posterior(
         venv.close()
         from optim.nuts import LogDensity, run_nuts
 
-        z = _logit(draws)
+        z = to_logit(draws)
         mean, chol = z.mean(axis=0), np.linalg.cholesky(np.cov(z, rowvar=False) + 1e-9 * np.eye(space.dimension))
         density = LogDensity(patient, space, sigma, bands, PLAUSIBILITY_SD, mean, chol, gradient_steps_per_beat, max_beats)
-        run = run_nuts(density, np.linalg.solve(chol, (_logit(position) - mean).T).T, warmup=chain_burn, draws=chain_steps, seed=seed,
+        run = run_nuts(density, np.linalg.solve(chol, (to_logit(position) - mean).T).T, warmup=chain_burn, draws=chain_steps, seed=seed,
                        max_doublings=max_doublings)
         chain = density.unit(run["positions"])
         tau = emcee.autocorr.integrated_time(chain, quiet=True)

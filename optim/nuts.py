@@ -37,10 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import lvenv
-from lvenv.identification import ParameterSpace
+from lvenv.identification import ParameterSpace, from_logit
 from lvenv.patients import Patient
 from lvenv.plausibility import Band, distance, distance_slope
-from optim.identify import _from_logit
 
 __all__ = ["LogDensity", "as_jax", "run_nuts", "TARGET_ACCEPTANCE"]
 
@@ -65,7 +64,7 @@ class LogDensity:
 
     def unit(self, w: np.ndarray) -> np.ndarray:
         """Unit-cube points of whitened points ``w`` (n, d)."""
-        return _from_logit(self.mean + np.asarray(w, float) @ self.chol.T)
+        return from_logit(self.mean + np.asarray(w, float) @ self.chol.T)
 
     def __call__(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         w = np.asarray(w, float)
