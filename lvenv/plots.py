@@ -1,5 +1,6 @@
 """Figures of a beat (matplotlib, Agg backend): PV loop and traces, a fit against its targets
-(the paper's Fig. 10), LO against FE traces, and profile likelihoods and posterior pairs. Each writes PNG or PDF by the file's suffix.
+(the paper's Fig. 10), LO against FE traces, profile likelihoods and posterior pairs, and the
+anatomy regression's trained maps over geometry (the paper's Fig. 9) with its parity plot. Each writes PNG or PDF by the file's suffix.
 
 Axes are in display units (mmHg, ms, ml) through :mod:`lvenv.units`; the functions take internal
 units (s, ml, kPa) like the rest of :mod:`lvenv`.
@@ -18,7 +19,7 @@ from lvenv.units import MS_PER_S, kpa_to_mmhg
 from lvenv.validation import InputError
 
 __all__ = ["SUFFIXES", "beat_figure", "fit_figure", "lo_fe_figure", "convergence_figure", "histogram_figure", "generalisation_figure",
-           "pairs_figure", "profile_figure"]
+           "pairs_figure", "profile_figure", "ANATOMY_OUTPUTS", "anatomy_scatter_figure", "anatomy_contour_figure", "parity_figure"]
 
 SUFFIXES = (".png", ".pdf")
 
@@ -236,4 +237,78 @@ def profile_figure(grid: Mapping[str, np.ndarray], chi2: Mapping[str, np.ndarray
         ax.tick_params(labelsize=7)
     for j in range(len(names), rows * cols):
         axes[j // cols, j % cols].set_visible(False)
+    return _save(fig, path)
+
+
+#: The trained parameters the anatomy figures show (the paper's Fig. 9 and our delay).
+ANATOMY_OUTPUTS = ("mu1", "mu2", "gamma", "delay")
+
+
+def _anatomy_grid(regression, name: str, n: int = 60) -> np.ndarray:
+    lo, hi = regression.box[name]
+    return np.linspace(lo, hi, n)
+
+
+def _slice_geometries(regression, values: Mapping[str, np.ndarray]) -> list:
+    """Geometries along ``values`` (by `Geometry` field) with every other parameter at the
+    training anatomies' median."""
+    from lvenv.anatomy import INPUTS
+    from lvenv.geometry import Geometry
+
+    median = np.median(regression.x * regression.x_scale + regression.x_mean, axis=0)
+    n = len(next(iter(values.values())))
+    columns = [np.asarray(values[k]) if k in values else np.full(n, median[j]) for j, k in enumerate(INPUTS)]
+    return [Geometry(*row) for row in np.stack(columns, axis=1)]
+
+
+def anatomy_scatter_figure(regression, path: str | os.PathLike[str], inputs: tuple[str, ...] = ("Rb", "L"),
+                           outputs: tuple[str, ...] = ANATOMY_OUTPUTS) -> Path:
+    """Trained values of the training anatomies against each of ``inputs`` (mm), with the GP's
+    mean ± 1 sd along that input (the others at their median): the paper's Fig. 9 scatter."""
+    from lvenv.anatomy import INPUTS
+
+    path, fig, axes = _figure(path, len(outputs), width=3.2 * len(outputs), nrows=len(inputs), height=3.0 * len(inputs))
+    x = regression.x * regression.x_scale + regression.x_mean
+    for i, inp in enumerate(inputs):
+        grid = _anatomy_grid(regression, inp)
+        mean, sd = regression.predict(_slice_geometries(regression, {inp: grid}), outputs)
+        for j, out in enumerate(outputs):
+            ax = axes[i][j]
+            spec = regression.outputs[out]
+            ax.plot(x[:, INPUTS.index(inp)], regression.y[out] * spec["scale"] + spec["mean"], "o", ms=3, color="tab:blue")
+            ax.plot(grid, mean[out], "-", color="tab:red")
+            ax.fill_between(grid, mean[out] - sd[out], mean[out] + sd[out], color="tab:red", alpha=0.2, lw=0)
+            ax.set_xlabel(f"{inp} (mm)" if inp in ("Rb", "L", "Z", "H") else inp)
+            ax.set_ylabel(f"{out} (s)" if out == "delay" else out)
+    return _save(fig, path)
+
+
+def anatomy_contour_figure(regression, path: str | os.PathLike[str], outputs: tuple[str, ...] = ANATOMY_OUTPUTS) -> Path:
+    """GP mean of each output over (Rb, L) in mm, the other parameters at their median."""
+    path, fig, axes = _figure(path, len(outputs), width=3.4 * len(outputs), height=3.2)
+    rb, thickness = np.meshgrid(_anatomy_grid(regression, "Rb", 40), _anatomy_grid(regression, "L", 40))
+    mean, _ = regression.predict(_slice_geometries(regression, {"Rb": rb.ravel(), "L": thickness.ravel()}), outputs)
+    for ax, out in zip(axes, outputs):
+        filled = ax.contourf(rb, thickness, mean[out].reshape(rb.shape), levels=12, cmap="viridis")
+        fig.colorbar(filled, ax=ax)
+        ax.set(xlabel="Rb (mm)", ylabel="L (mm)", title=f"{out} (s)" if out == "delay" else out)
+    return _save(fig, path)
+
+
+def parity_figure(truth: Mapping[str, np.ndarray], predicted: Mapping[str, np.ndarray], sd: Mapping[str, np.ndarray],
+                  path: str | os.PathLike[str]) -> Path:
+    """Cross-validated predictions (± 2 sd) against the trained values, one panel per output."""
+    names = list(truth)
+    cols = min(5, len(names))
+    rows = -(-len(names) // cols)
+    path, fig, axes = _figure(path, cols, width=3.0 * cols, nrows=rows, height=3.0 * rows)
+    flat = np.ravel(axes)
+    for ax, name in zip(flat, names):
+        t, p, s = (np.asarray(d[name], float) for d in (truth, predicted, sd))
+        ax.errorbar(t, p, yerr=2 * s, fmt="o", ms=3, lw=0.8, alpha=0.8)
+        lo, hi = float(min(t.min(), p.min())), float(max(t.max(), p.max()))
+        ax.plot([lo, hi], [lo, hi], "k--", lw=0.8)
+        ax.set(xlabel=f"trained {name}", ylabel=f"predicted {name}")
+    for ax in flat[len(names):]:
+        ax.set_visible(False)
     return _save(fig, path)

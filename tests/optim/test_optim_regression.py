@@ -126,7 +126,7 @@ def test_held_out_anatomies_compare_predicted_trained_and_baseline_maps_on_their
     from lvenv.trained import builtin
     from optim import congruency
 
-    dataset = shutil.copytree(dataset, tmp_path / "dataset")
+    dataset = shutil.copytree(dataset, tmp_path / "dataset")  # the module fixture stays as it was
     rows = campaign.read_index(dataset)
     row = next(r for r in rows if r["id"] == "H000")
     geometry = Geometry(**{name: row[col] for col, name in GEOMETRY_COLUMNS.items()})
@@ -145,3 +145,16 @@ def test_held_out_anatomies_compare_predicted_trained_and_baseline_maps_on_their
     assert result["id"] == "H000"
     assert result["C_trained"] == pytest.approx(trained.congruency["C"], rel=1e-12)
     assert result["C_baseline"] > 3 * result["C_trained"] and np.isfinite(result["C_predicted"])
+
+
+def test_anatomy_figures_are_drawn_from_the_regression(fitted, tmp_path):
+    from lvenv import plots
+
+    cv = fitted.provenance["cv_predictions"]
+    truth = {k: fitted.y[k] * fitted.outputs[k]["scale"] + fitted.outputs[k]["mean"] for k in cv}
+    paths = [plots.anatomy_scatter_figure(fitted, tmp_path / "scatter.png"), plots.anatomy_contour_figure(fitted, tmp_path / "contours.pdf"),
+             plots.parity_figure(truth, {k: np.array(v["predicted"]) for k, v in cv.items()}, {k: np.array(v["sd"]) for k, v in cv.items()},
+                                 tmp_path / "parity.png")]
+    assert all(p.stat().st_size > 10_000 for p in paths)
+    with pytest.raises(InputError, match="must end in one of"):
+        plots.parity_figure(truth, truth, truth, tmp_path / "parity.svg")

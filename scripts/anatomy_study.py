@@ -1,0 +1,87 @@
+"""The anatomy campaign's results: status, throughput, the regression's cross-validation, the held-out check and the figures; prints one JSON object.
+
+    python scripts/anatomy_study.py [--dataset lvenv/data/anatomy] [--out out/anatomy] [--restarts 5] [--artefact PATH]
+
+Reads the campaign's dataset (`optim.campaign`; no FE run), counts the anatomies by status with
+every reason for leaving one out, and the throughput per session and worker count from the
+campaign's own log. With at least `optim.regression.MIN_ANATOMIES` accepted training anatomies
+it fits the regression (`optim.regression.fit`, 5-fold cross-validation), writes the artefact
+(default: the package's, which `lvenv.anatomy.from_geometry` loads), compares C of the
+GP-predicted, the directly trained and the N record's maps on each held-out anatomy
+(`optim.regression.held_out`), and draws the Fig. 9-style scatter and contour plots and the
+parity plot under ``--out``. ``<out>/anatomy.md`` holds the tables, the command and the date for
+``lvenv report``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import pathlib
+import sys
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from lvenv import plots  # noqa: E402
+from lvenv.anatomy import ARTEFACT  # noqa: E402
+from optim import campaign, regression  # noqa: E402
+
+
+def _markdown(summary: dict, command: str) -> str:
+    lines = [f"Made by `{command}` on {summary['date']}.", "", "| status | anatomies |", "|---|---|"]
+    lines += [f"| {k} | {v} |" for k, v in summary["counts"].items() if v]
+    if summary["throughput"]:
+        lines += ["", "| session | workers | anatomies | per hour | median min per anatomy |", "|---|---|---|---|---|"]
+        lines += [f"| {s['session']} | {s['workers']} | {s['anatomies']} | {s['per_hour']:.2f} | {s['median_anatomy_min']:.1f} |" for s in summary["throughput"]]
+    if "cv" in summary:
+        lines += ["", f"Cross-validation ({summary['folds']}-fold, {summary['training_anatomies']} anatomies):", "",
+                  "| output | R² | RMSE | within 2 sd |", "|---|---|---|---|"]
+        lines += [f"| {k} | {v['r2']:.3f} | {v['rmse']:.4g} | {100 * v['coverage_2sd']:.0f} % |" for k, v in summary["cv"].items()]
+    if summary.get("held_out"):
+        lines += ["", "| held-out anatomy | C trained (%) | C GP-predicted (%) | C N maps (%) |", "|---|---|---|---|"]
+        lines += [f"| {r['id']} | {100 * r['C_trained']:.2f} | {100 * r['C_predicted']:.2f} | {100 * r['C_baseline']:.2f} |" for r in summary["held_out"]]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dataset", type=pathlib.Path, default=campaign.DATASET)
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/anatomy"))
+    parser.add_argument("--restarts", type=int, default=5)
+    parser.add_argument("--folds", type=int, default=5)
+    parser.add_argument("--artefact", type=pathlib.Path, default=ARTEFACT)
+    args = parser.parse_args()
+    rows = campaign.read_index(args.dataset)
+    summary: dict = {
+        "date": datetime.date.today().isoformat(),
+        "counts": {s: sum(r["status"] == s for r in rows) for s in campaign.STATUSES},
+        "left_out": {r["id"]: f"{r['status']}: {r['reason']}" for r in rows if r["status"] not in ("pending", "accepted")},
+        "throughput": campaign.throughput(args.dataset),
+        "settings": json.loads((args.dataset / "campaign.json").read_text())["settings"],
+    }
+    ids, _, trained = regression.training_set(args.dataset)
+    if len(ids) >= regression.MIN_ANATOMIES:
+        fitted = regression.fit(args.dataset, restarts=args.restarts, folds=args.folds)
+        regression.save(fitted, args.artefact)
+        cv_predictions = fitted.provenance["cv_predictions"]
+        summary.update(training_anatomies=len(ids), folds=args.folds, artefact=str(args.artefact),
+                       cv={k: v["cv"] for k, v in fitted.outputs.items()}, held_out=regression.held_out(fitted, args.dataset))
+        args.out.mkdir(parents=True, exist_ok=True)
+        summary["figures"] = [str(p) for p in (
+            plots.anatomy_scatter_figure(fitted, args.out / "anatomy_scatter.png"),
+            plots.anatomy_contour_figure(fitted, args.out / "anatomy_contours.png"),
+            plots.parity_figure({k: trained[k] for k in cv_predictions}, {k: np.array(v["predicted"]) for k, v in cv_predictions.items()},
+                                {k: np.array(v["sd"]) for k, v in cv_predictions.items()}, args.out / "anatomy_parity.png"),
+        )]
+    else:
+        summary["regression"] = f"not fitted: {len(ids)} accepted training anatomies, {regression.MIN_ANATOMIES} needed"
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "anatomy.md").write_text(_markdown(summary, "python " + " ".join(sys.argv)))
+    print(json.dumps(summary, indent=2, default=float))
+
+
+if __name__ == "__main__":
+    main()
