@@ -13,6 +13,7 @@ multi-element      ``out/multielement/multielement.md``            ``python scri
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``      ``make run``
 cohort             ``out/cohort/*.csv`` with its ``.json``         ``lvenv cohort REPORTS --out out/cohort/…``
 performance        ``out/bench/*.json``                            ``lvenv bench NAME``
+anatomy            ``out/anatomy/anatomy.md`` and its figures      ``python scripts/anatomy_study.py``
 =================  ==============================================  ==============================================
 """
 
@@ -32,7 +33,7 @@ from optim.cohort import summarise
 
 __all__ = ["build_report", "SECTIONS"]
 
-SECTIONS = ("congruency", "generalisation", "multi-element", "inverse problem", "cohort", "performance")
+SECTIONS = ("congruency", "generalisation", "multi-element", "inverse problem", "cohort", "performance", "anatomy")
 
 
 def _stamp(path: Path) -> str:
@@ -62,13 +63,11 @@ def _congruency() -> list[str]:
     return lines + [""]
 
 
-def _markdown_file(path: Path, command: str, report_dir: Path, image: Path | None = None) -> list[str]:
+def _markdown_file(path: Path, command: str, report_dir: Path, images: tuple[Path, ...] = ()) -> list[str]:
     if not path.exists():
         return _missing(command)
     lines = [f"Command: `{command}`; results of {_stamp(path)} (`{path}`).", "", path.read_text().strip(), ""]
-    if image is not None and image.exists():
-        lines += [_image(image, report_dir), ""]
-    return lines
+    return lines + [line for image in images if image.exists() for line in (_image(image, report_dir), "")]
 
 
 def _inverse(root: Path, report_dir: Path) -> list[str]:
@@ -127,11 +126,13 @@ def build_report(root: str | os.PathLike[str] = "out", path: str | os.PathLike[s
     sections = {
         "congruency": _congruency(),
         "generalisation": _markdown_file(root / "generalisation" / "generalisation.md", "python scripts/generalisation.py", report_dir,
-                                         root / "generalisation" / "generalisation.png"),
+                                         (root / "generalisation" / "generalisation.png",)),
         "multi-element": _markdown_file(root / "multielement" / "multielement.md", "python scripts/multielement_study.py", report_dir),
         "inverse problem": _inverse(root, report_dir),
         "cohort": _cohorts(root, report_dir),
         "performance": _performance(root),
+        "anatomy": _markdown_file(root / "anatomy" / "anatomy.md", "python scripts/anatomy_study.py", report_dir,
+                                  tuple(root / "anatomy" / f"anatomy_{name}.png" for name in ("scatter", "contours", "parity"))),
     }
     for title, body in sections.items():
         lines += [f"## {title.capitalize()}", "", *body]
