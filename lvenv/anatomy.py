@@ -20,6 +20,9 @@ step, code versions). `optim.regression` fits and writes it; nothing here unpick
 :func:`from_geometry` returns a :class:`~lvenv.trained.TrainedLO` in milliseconds, with the
 predictive sd of every parameter in ``provenance["sd"]``; a geometry outside the sampled box
 gets an :class:`ExtrapolationWarning` naming the parameter.
+
+Imaged ventricles are loaded; the regression takes the unloaded shape. :func:`unload` applies
+the paper's rule, an assumed mid-wall end-diastolic strain (:data:`ED_STRAIN`).
 """
 
 from __future__ import annotations
@@ -34,13 +37,14 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from scipy.optimize import brentq
 
-from lvenv.geometry import Geometry
+from lvenv.geometry import Geometry, GeometryError, wall_volume
 from lvenv.params import CellParams, LOParams
 from lvenv.trained import DATA, TrainedLO
-from lvenv.validation import InputError
+from lvenv.validation import InputError, real
 
-__all__ = ["ARTEFACT", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ExtrapolationWarning", "Regression", "kernel", "from_geometry"]
+__all__ = ["ARTEFACT", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "ExtrapolationWarning", "Regression", "kernel", "from_geometry", "unload"]
 
 ARTEFACT = DATA / "anatomy" / "regression.json"
 FORMAT_VERSION = 1
@@ -192,3 +196,43 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
     provenance = {"source": "gaussian-process regression over geometry", "sd": {k: float(v[0]) for k, v in sd.items()},
                   "outside_box": outside, "training_anatomies": len(regression.ids), **{k: v for k, v in regression.provenance.items() if k != "cv"}}
     return TrainedLO(geometry, lo, CellParams() if cell is None else cell, {"C": c}, None, math.nan, provenance)
+
+
+#: Assumed mid-wall end-diastolic strain by group (Di Achille et al. 2020: 10 % N, 15 % HF).
+ED_STRAIN = {"N": 0.10, "HF": 0.15}
+
+
+def unload(end_diastolic: Geometry, strain: float) -> Geometry:
+    """The unloaded geometry of an imaged end-diastolic one under an assumed mid-wall strain ε
+    (the paper's rule, :data:`ED_STRAIN`; our reading of it, DESIGN §5):
+
+    * the mid-wall basal radius Rb − L/2 and the mid-wall long axis Z − H/2 shrink by 1/(1 + ε);
+    * the wall thickens by one factor s on L and H such that the wall volume is kept
+      (incompressible myocardium; :func:`lvenv.geometry.wall_volume`), s found by Brent's method;
+    * the shape e and the truncation C0 are kept.
+
+    ``strain`` ≥ 0 (0 returns the geometry itself). Raises :class:`GeometryError` if no valid
+    geometry keeps the wall volume.
+    """
+    strain = real("strain", strain, 0.0, 1.0)
+    g = end_diastolic
+    if strain == 0.0:
+        return g
+    radius, axis = (g.Rb - g.L / 2) / (1 + strain), (g.Z - g.H / 2) / (1 + strain)
+    target = wall_volume(g)
+
+    def shaped(s: float) -> Geometry:
+        return Geometry(radius + s * g.L / 2, s * g.L, axis + s * g.H / 2, s * g.H, g.e, g.C0)
+
+    def excess(s: float) -> float:
+        try:
+            return wall_volume(shaped(s)) - target
+        except GeometryError:
+            return math.inf
+
+    hi = 1.0
+    while excess(hi) < 0 and hi < 4.0:
+        hi *= 1.25
+    if not excess(1.0) < 0 < excess(hi) or not math.isfinite(excess(hi)):
+        raise GeometryError(f"no unloaded geometry keeps the wall volume of {g} under strain = {strain}")
+    return shaped(brentq(excess, 1.0, hi, xtol=1e-12))

@@ -4,7 +4,8 @@
 
 Reads the campaign's dataset (`optim.campaign`; no FE run), counts the anatomies by status with
 every reason for leaving one out, and the throughput per session and worker count from the
-campaign's own log. With at least `optim.regression.MIN_ANATOMIES` accepted training anatomies
+campaign's own log, and the paper's unloading rule (`lvenv.anatomy.unload`) on the Table 1
+end-diastolic anatomies against their unloaded ones. With at least `optim.regression.MIN_ANATOMIES` accepted training anatomies
 it fits the regression (`optim.regression.fit`, 5-fold cross-validation), writes the artefact
 (default: the package's, which `lvenv.anatomy.from_geometry` loads), compares C of the
 GP-predicted, the directly trained and the N record's maps on each held-out anatomy
@@ -25,13 +26,17 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from lvenv import plots  # noqa: E402
-from lvenv.anatomy import ARTEFACT  # noqa: E402
+from lvenv import plots, presets  # noqa: E402
+from lvenv.anatomy import ARTEFACT, ED_STRAIN, unload  # noqa: E402
+from lvenv.geometry import cavity_volume  # noqa: E402
 from optim import campaign, regression  # noqa: E402
 
 
 def _markdown(summary: dict, command: str) -> str:
-    lines = [f"Made by `{command}` on {summary['date']}.", "", "| status | anatomies |", "|---|---|"]
+    lines = [f"Made by `{command}` on {summary['date']}.", "", "| Table 1 anatomy | unloaded by the rule: V0 (ml) | paper's unloaded V0 (ml) | error |", "|---|---|---|---|"]
+    lines += [f"| {k} (strain {100 * v['strain']:.0f} %) | {v['V0_rule_ml']:.1f} | {v['V0_table1_ml']:.1f} | {100 * v['V0_error']:+.1f} % |"
+              for k, v in summary["unloading_rule"].items()]
+    lines += ["", "| status | anatomies |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in summary["counts"].items() if v]
     if summary["throughput"]:
         lines += ["", "| session | workers | anatomies | per hour | median min per anatomy |", "|---|---|---|---|---|"]
@@ -44,6 +49,17 @@ def _markdown(summary: dict, command: str) -> str:
         lines += ["", "| held-out anatomy | C trained (%) | C GP-predicted (%) | C N maps (%) |", "|---|---|---|---|"]
         lines += [f"| {r['id']} | {100 * r['C_trained']:.2f} | {100 * r['C_predicted']:.2f} | {100 * r['C_baseline']:.2f} |" for r in summary["held_out"]]
     return "\n".join(lines) + "\n"
+
+
+def _unloading_rule() -> dict:
+    """The paper's unloading rule (`lvenv.anatomy.unload`) on the Table 1 end-diastolic
+    anatomies, against the paper's own unloaded ones: V0 in ml and its relative error."""
+    out = {}
+    for name, ed, unloaded in (("N", presets.N_END_DIASTOLE, presets.N_UNLOADED), ("HF", presets.HF_END_DIASTOLE, presets.HF_UNLOADED)):
+        rule = unload(ed, ED_STRAIN[name])
+        out[name] = {"strain": ED_STRAIN[name], "geometry": rule.as_tuple(), "V0_rule_ml": cavity_volume(rule), "V0_table1_ml": cavity_volume(unloaded),
+                     "V0_error": cavity_volume(rule) / cavity_volume(unloaded) - 1.0}
+    return out
 
 
 def main() -> None:
@@ -61,6 +77,7 @@ def main() -> None:
         "left_out": {r["id"]: f"{r['status']}: {r['reason']}" for r in rows if r["status"] not in ("pending", "accepted")},
         "throughput": campaign.throughput(args.dataset),
         "settings": json.loads((args.dataset / "campaign.json").read_text())["settings"],
+        "unloading_rule": _unloading_rule(),
     }
     ids, _, trained = regression.training_set(args.dataset)
     if len(ids) >= regression.MIN_ANATOMIES:
