@@ -8,7 +8,7 @@ training, and ``optim`` already imports ``fe_oracle``.
 
 **Execution.** Anatomies are tasks on Dask distributed (`optim.cluster.client`: a
 ``LocalCluster`` sized to the machine by default, or an existing scheduler by address). A
-worker runs each FE solve in a subprocess of its own (``python -m optim.campaign``) with a
+worker runs each FE solve in a subprocess of its own (``python -m fe_oracle.solve``) with a
 timeout, so a crash, a hang or a runaway mesh cannot take the worker down; the solve writes its
 result into the oracle's content-hash cache (`fe_oracle.cache`) and the worker reads it back by
 its key. Solves and workers use JAX's persistent compilation cache (`lvenv.jitcache`, as every
@@ -184,7 +184,7 @@ def _solve(geometry: Geometry, case, settings: Settings, cache_dir: str | None) 
                "options": settings.oracle_options(), "cache_dir": cache_dir}
     t0 = time.perf_counter()
     try:
-        done = subprocess.run([sys.executable, "-m", "optim.campaign", json.dumps(request)], capture_output=True, text=True, timeout=settings.timeout_s)
+        done = subprocess.run([sys.executable, "-m", "fe_oracle.solve", json.dumps(request)], capture_output=True, text=True, timeout=settings.timeout_s)
     except subprocess.TimeoutExpired:
         return None, f"case {case}: the FE solve timed out after {settings.timeout_s:g} s", time.perf_counter() - t0, False
     seconds = time.perf_counter() - t0
@@ -195,21 +195,6 @@ def _solve(geometry: Geometry, case, settings: Settings, cache_dir: str | None) 
         return None, f"case {case}: the FE solve was killed by signal {-done.returncode}", seconds, False
     last = [line for line in done.stderr.strip().splitlines() if line.strip()]
     return None, f"case {case}: {last[-1] if last else f'the FE solve exited with code {done.returncode}'}", seconds, False
-
-
-def _solve_main(request_json: str) -> int:
-    """Entry of the solve subprocess: run one oracle case into the cache; prints "computed" or
-    "cached" and the cache key."""
-    jitcache.enable()
-    request = json.loads(request_json)
-    try:
-        result = fe_oracle.run(Geometry(**request["geometry"]), request["case"], request["backend"], cache_dir=request["cache_dir"], progress=False,
-                      **request["options"])
-    except (fe_oracle.OracleDidNotConverge, InputError, RuntimeError) as err:
-        print(f"{type(err).__name__}: {err}", file=sys.stderr)
-        return 3
-    print("cached" if result.from_cache else "computed", result.metadata["key"])
-    return 0
 
 
 def solve_anatomy(task: Mapping[str, Any]) -> dict[str, Any]:
@@ -497,6 +482,3 @@ def throughput(directory: str | os.PathLike[str] = DATASET) -> list[dict[str, An
                     "median_anatomy_min": float(np.median([(g["end"] - g["start"]) / 60.0 for g in group]))})
     return out
 
-
-if __name__ == "__main__":
-    sys.exit(_solve_main(sys.argv[1]))
