@@ -63,7 +63,7 @@ from optim.protocol import Bounds, padded, run
 
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
-    "OracleData", "TrainedLO", "Fidelity", "residuals", "congruency", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
+    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
     "train", "train_on", "check_fidelity",
 ]
 
@@ -135,7 +135,7 @@ def congruency(oracle: Mapping[str, np.ndarray], t: np.ndarray, v: np.ndarray, p
     return np.sum(residuals(oracle, t, v, p) ** 2, axis=1)
 
 
-def _training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams]) -> list[Heart]:
+def training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams]) -> list[Heart]:
     """One heart per (LO candidate, condition), candidate-major."""
     base = [presets.training_circulation(k) for k in CONDITIONS]
     return [Heart(geometry=geometry, lo=lo, cell=cell, circulation=circ) for lo in los for circ in base]
@@ -144,7 +144,7 @@ def _training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParam
 def run_congruency(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000) -> np.ndarray:
     """C per (candidate, condition) of LO candidates against ``data``, shape (len(los), 3),
     one batched simulation; NaN where the LO beat failed."""
-    hearts = _training_hearts(data.geometry, data.cell, los)
+    hearts = training_hearts(data.geometry, data.cell, los)
     sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
     out = np.full((len(los), len(CONDITIONS)), np.nan)
     for j, k in enumerate(CONDITIONS):
@@ -226,7 +226,7 @@ def _polish(data: OracleData, lo: LOParams, names: tuple[str, ...], lower: np.nd
         return dataclasses.replace(lo, **dict(zip(names, map(float, x))))
 
     def fun(x) -> np.ndarray:
-        hearts = _training_hearts(data.geometry, data.cell, [with_values(x)])
+        hearts = training_hearts(data.geometry, data.cell, [with_values(x)])
         sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
         if not all(is_usable(s) for s in sim.status):
             return np.full(sum(2 * len(data.beats[k].traces["t"]) for k in CONDITIONS), 1e3)
