@@ -126,12 +126,13 @@ from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import Patient
 from lvenv.plausibility import Band, distance
 from lvenv.plausibility import resolve as resolve_bands
+from lvenv.status import USABLE
 from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError, integer, real
 from optim.cohort import CohortOptions, Report, fit_reports
 
 __all__ = ["NOISE", "Relative", "VOLUME_NAMES", "measurement_sd", "chi2_weighted", "PLAUSIBILITY_SD", "DELTA_95", "FLAT", "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior",
-           "probability_lower", "prior_draws", "log_density", "chi2", "write_report", "SAMPLERS", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
+           "probability_lower", "prior_draws", "prior_sample", "PriorSample", "amortised", "log_density", "chi2", "write_report", "SAMPLERS", "SAMPLER_SETTINGS", "add_sampler_options", "sampler_options"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,7 +345,10 @@ def profile(
 class Posterior:
     """Posterior samples by parameter name (physical units, burn-in removed, walkers × steps
     flattened), their medians and 90 % credible intervals, and the diagnostics (module docstring).
-    ``pilot_steps``: the pilot's steps, more than ``steps`` where it was extended (:data:`CLIMB`)."""
+    ``pilot_steps``: the pilot's steps, more than ``steps`` where it was extended (:data:`CLIMB`).
+    From :func:`amortised` (``sampler="amortised"``) the samples are independent draws of the
+    flow: no acceptance (NaN), autocorrelation time 1, ESS the number of samples, and the split
+    R-hat of four consecutive blocks of them."""
 
     samples: dict[str, np.ndarray]
     median: dict[str, float]
@@ -358,6 +362,7 @@ class Posterior:
     pilot_steps: int
     sampler: str = "ensemble"
     divergent: int = 0  # NUTS transitions that diverged (0 for the ensemble)
+    out_of_distribution: str = ""  # amortised posteriors: why the observation is outside the training set ("" if inside)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if k != "samples"}
@@ -470,24 +475,26 @@ def _chain_moves(pilot: np.ndarray, seed: int) -> list:
     return [(emcee.moves.MHMove(independence), INDEPENDENCE_SHARE), (emcee.moves.GaussianMove(walk), 1.0 - INDEPENDENCE_SHARE)]
 
 
-def _evaluate(venv: Any, x: np.ndarray, target_names: Sequence[str], bands: Sequence[Band]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _evaluate(venv: Any, x: np.ndarray, target_names: Sequence[str], bands: Sequence[Band]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One step of ``venv`` at the physical parameter rows ``x`` (at most its size; the rest of
     the batch repeats the last row). Returns the rows' observations of ``target_names`` (n, k),
-    whether each heart is usable (status ok or not_converged, finite targets), and the log of the
-    prior's plausibility factor, −½ Σ_b (d_b / :data:`PLAUSIBILITY_SD`)² (module docstring)."""
+    whether each heart is usable (status ok or not_converged, finite targets), the log of the
+    prior's plausibility factor, −½ Σ_b (d_b / :data:`PLAUSIBILITY_SD`)² (module docstring), and
+    each row's simulation status (:mod:`lvenv.status` names)."""
     padded = np.concatenate([x, np.repeat(x[-1:], venv.num_envs - len(x), axis=0)])
     _, _, _, _, info = venv.step(venv.unwrapped.config.actions.to_action(padded))
     obs = np.stack([np.asarray(info[k], float) for k in target_names], axis=1)[: len(x)]
-    ok = np.isin(info["status"][: len(x)], ("ok", "not_converged")) & np.all(np.isfinite(obs), axis=1)
+    status = np.asarray(info["status"])[: len(x)]
+    ok = np.isin(status, USABLE) & np.all(np.isfinite(obs), axis=1)
     log_factor = -0.5 * sum((np.asarray(distance(b, info[b.metric][: len(x)])) / PLAUSIBILITY_SD) ** 2 for b in bands)
-    return obs, ok, np.broadcast_to(log_factor, (len(x),))
+    return obs, ok, np.broadcast_to(log_factor, (len(x),)), status
 
 
 def _log_posterior(venv: Any, x: np.ndarray, patient: Patient, sigma: np.ndarray, bands: Sequence[Band]) -> tuple[np.ndarray, np.ndarray]:
     """The unnormalised log posterior at the physical rows ``x`` (one step of ``venv``, at most
     its size), −½ χ² plus the log plausibility factor, −inf for an unusable heart; and which
     hearts were usable."""
-    obs, ok, log_factor = _evaluate(venv, x, list(patient.targets), bands)
+    obs, ok, log_factor, _ = _evaluate(venv, x, list(patient.targets), bands)
     value = -0.5 * np.sum(((obs - np.array(list(patient.targets.values()))) / sigma) ** 2, axis=1) + log_factor
     return np.where(ok, value, -np.inf), ok
 
@@ -523,9 +530,110 @@ def log_density(
     return np.where(inside, value, -np.inf)
 
 
-#: :func:`prior_draws` gives up after this many uniform draws per requested one (it keeps about
+#: :func:`prior_sample` gives up after this many uniform draws per requested one (it keeps about
 #: 1 in 4 with the default bands).
 PRIOR_TRIES = 1000
+
+
+@dataclasses.dataclass(frozen=True)
+class PriorSample:
+    """Draws from :func:`posterior`'s prior with their noise-free observations (:func:`prior_sample`).
+
+    ``parameters``: (n, 6), physical units, columns :data:`DEFAULT_ACTION_PARAMS`;
+    ``observations``: (n, k) of ``names``, internal units; ``heart_rate``: (n,) 1/min, each draw's
+    heart rate; ``base``: (n,) index of each draw's patient among those given; ``tried``: the
+    uniform draws simulated; ``left_out``: how many of them were left out, by reason: a simulation
+    status (:mod:`lvenv.status`) for an unusable heart, ``"nonfinite_targets"`` for a usable one
+    whose targets are not finite, ``"implausible"`` for one the plausibility factor rejected.
+    """
+
+    parameters: np.ndarray
+    observations: np.ndarray
+    heart_rate: np.ndarray
+    base: np.ndarray
+    names: tuple[str, ...]
+    tried: int
+    left_out: dict[str, int]
+
+
+def prior_sample(
+    n: int,
+    patients: Patient | Sequence[Patient],
+    *,
+    heart_rate: tuple[float, float] | None = None,
+    seed: int = 0,
+    batch: int = 32,
+    steps_per_beat: int = 500,
+    max_beats: int = 60,
+    plausibility: bool | Sequence[Band] = True,
+) -> PriorSample:
+    """``n`` exact draws from :func:`posterior`'s prior, and the noise-free observations of the
+    patients' targets at each (all ``patients`` must name the same targets).
+
+    The prior is uniform in the unit cube of the identification bounds (log-uniform on log axes),
+    times the plausibility factor exp(−½ Σ_b (d_b / :data:`PLAUSIBILITY_SD`)²), on hearts that
+    simulate usably (module docstring). The factor is at most 1, so keeping a uniform draw with
+    probability equal to it is exact rejection sampling. The hearts are simulated by the env that
+    :func:`posterior` uses (a patient's heart with the six parameters replaced, ``batch``
+    members, ``steps_per_beat``, ``max_beats``), so their observations are what its likelihood
+    compares. Truths for simulation-based calibration must come from this prior: then, whatever
+    the model, exact posteriors' 90 % intervals hold 90 % of them (Talts S et al.,
+    arXiv:1804.06788, 2018).
+
+    One patient without ``heart_rate``: every draw is of that patient's heart. Otherwise each
+    draw's heart is one of ``patients``, uniformly at random, at a heart rate uniform in
+    ``heart_rate`` = (low, high) 1/min (default: that patient's own); each batch then resets the
+    env to its members' hearts first (a second simulation per member, from a cold start).
+    """
+    from optim.fit import make_env
+
+    n, seed, batch = integer("n", n, 1), integer("seed", seed, 0), integer("batch", batch, 1)
+    patients = [patients] if isinstance(patients, Patient) else list(patients)
+    if not patients or not all(isinstance(p, Patient) for p in patients):
+        raise InputError(f"patients = {patients!r} must be a Patient or a non-empty sequence of them")
+    names = tuple(patients[0].targets)
+    if any(tuple(p.targets) != names for p in patients):
+        raise InputError(f"the patients name different targets {[tuple(p.targets) for p in patients]}; give them the same ones")
+    if heart_rate is not None:
+        lo, hi = (real("heart_rate", h, 20.0, 240.0) for h in heart_rate)
+        if not lo < hi:
+            raise InputError(f"heart_rate = ({lo:g}, {hi:g}) 1/min: the lower end must be below the upper")
+    varied = heart_rate is not None or len(patients) > 1
+    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
+    bands = resolve_bands(plausibility)
+    rng = np.random.default_rng(seed)
+    venv = make_env(patients[0], batch, steps_per_beat, max_beats)
+    venv.reset(seed=seed)
+    kept: dict[str, list] = {"x": [], "obs": [], "hr": [], "base": []}
+    left_out: dict[str, int] = {}
+    tried = 0
+    base = np.zeros(batch, int)
+    rate = np.full(batch, float(patients[0].heart.get("HR")))
+    try:
+        while len(kept["x"]) < n:
+            if tried >= PRIOR_TRIES * n:
+                raise RuntimeError(f"prior_sample kept {len(kept['x'])} of {tried} uniform draws, fewer than 1 in {PRIOR_TRIES}: "
+                                   f"the plausibility bands {[b.describe() for b in bands]} leave almost no usable heart inside the bounds")
+            if varied:
+                base = rng.integers(len(patients), size=batch)
+                rate = (rng.uniform(lo, hi, batch) if heart_rate is not None
+                        else np.array([float(patients[b].heart.get("HR")) for b in base]))
+                members = [dataclasses.replace(patients[b], heart=patients[b].heart.replace(HR=float(h))) for b, h in zip(base, rate)]
+                venv.reset(seed=seed, options={"patient": members})
+            x = space.from_unit(rng.random((batch, space.dimension)))
+            obs, ok, log_factor, status = _evaluate(venv, x, names, bands)
+            plausible = rng.random(batch) < np.exp(log_factor)
+            keep = ok & plausible
+            reasons = np.where(ok, np.where(plausible, "", "implausible"), np.where(np.isin(status, USABLE), "nonfinite_targets", status))
+            for reason, count in zip(*np.unique(reasons[~keep], return_counts=True)):
+                left_out[str(reason)] = left_out.get(str(reason), 0) + int(count)
+            for key, value in (("x", x), ("obs", obs), ("hr", rate), ("base", base)):
+                kept[key].extend(value[keep])
+            tried += batch
+    finally:
+        venv.close()
+    return PriorSample(np.array(kept["x"][:n]), np.array(kept["obs"][:n]), np.array(kept["hr"][:n]), np.array(kept["base"][:n], int),
+                       names, tried, left_out)
 
 
 def prior_draws(
@@ -538,43 +646,11 @@ def prior_draws(
     max_beats: int = 60,
     plausibility: bool | Sequence[Band] = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` exact draws from :func:`posterior`'s prior, and the noise-free observations of
-    ``patient``'s targets at each.
-
-    The prior is uniform in the unit cube of the identification bounds (log-uniform on log axes),
-    times the plausibility factor exp(−½ Σ_b (d_b / :data:`PLAUSIBILITY_SD`)²), on hearts that
-    simulate usably (module docstring). The factor is at most 1, so keeping a uniform draw with
-    probability equal to it is exact rejection sampling. The hearts are simulated by the env that
-    :func:`posterior` uses (``patient``'s heart with the six parameters replaced, ``batch``
-    members, ``steps_per_beat``, ``max_beats``), so their observations are what its likelihood
-    compares. Truths for simulation-based calibration must come from this prior: then, whatever
-    the model, exact posteriors' 90 % intervals hold 90 % of them (Talts S et al.,
-    arXiv:1804.06788, 2018). Returns (n, 6) parameters (physical units, columns
-    :data:`DEFAULT_ACTION_PARAMS`) and (n, number of targets) observations (internal units).
-    """
-    from optim.fit import make_env
-
-    n, seed, batch = integer("n", n, 1), integer("seed", seed, 0), integer("batch", batch, 1)
-    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
-    bands = resolve_bands(plausibility)
-    rng = np.random.default_rng(seed)
-    venv = make_env(patient, batch, steps_per_beat, max_beats)
-    venv.reset(seed=seed)
-    kept_x, kept_obs, tried = [], [], 0
-    try:
-        while len(kept_x) < n:
-            if tried >= PRIOR_TRIES * n:
-                raise RuntimeError(f"prior_draws kept {len(kept_x)} of {tried} uniform draws, fewer than 1 in {PRIOR_TRIES}: "
-                                   f"the plausibility bands {[b.describe() for b in bands]} leave almost no usable heart inside the bounds")
-            x = space.from_unit(rng.random((batch, space.dimension)))
-            obs, ok, log_factor = _evaluate(venv, x, list(patient.targets), bands)
-            keep = ok & (rng.random(batch) < np.exp(log_factor))
-            kept_x.extend(x[keep])
-            kept_obs.extend(obs[keep])
-            tried += batch
-    finally:
-        venv.close()
-    return np.array(kept_x[:n]), np.array(kept_obs[:n])
+    """``n`` exact draws from :func:`posterior`'s prior for ``patient``'s own heart
+    (:func:`prior_sample`): (n, 6) parameters (physical units, columns
+    :data:`DEFAULT_ACTION_PARAMS`) and (n, number of targets) noise-free observations (internal units)."""
+    draws = prior_sample(n, patient, seed=seed, batch=batch, steps_per_beat=steps_per_beat, max_beats=max_beats, plausibility=plausibility)
+    return draws.parameters, draws.observations
 
 
 def posterior(
@@ -735,6 +811,57 @@ def posterior(
         sampler=sampler,
         divergent=divergent,
     )
+
+
+def amortised(
+    patients: Patient | Sequence[Patient],
+    n_samples: int = 1000,
+    *,
+    seed: int = 0,
+    estimator: Any = None,
+) -> list[Posterior]:
+    """The amortised posterior of each patient (:mod:`optim.amortised`): ``n_samples`` draws of
+    the trained flow given its targets (any subset of :data:`optim.amortised.OBSERVED`, internal
+    units) and its heart's rate, in one batched pass for all patients. One :class:`Posterior` per
+    patient (``sampler="amortised"``), in order; ``out_of_distribution`` says why a patient's
+    observation lies outside the training set (:meth:`optim.amortised.Estimator.out_of_distribution`),
+    and its samples are then not to be trusted. ``estimator``: an
+    :class:`optim.amortised.Estimator` or an artefact path (default: the shipped artefact).
+    :class:`InputError` for a target the estimator does not take or a heart that is none of its
+    base presets (up to the six parameters and the heart rate)."""
+    from optim import amortised as amortised_module
+
+    patients = [patients] if isinstance(patients, Patient) else list(patients)
+    if not patients or not all(isinstance(p, Patient) for p in patients):
+        raise InputError(f"patients must be a Patient or a non-empty list of them, got {patients!r}")
+    n_samples, seed = integer("n_samples", n_samples, 8), integer("seed", seed, 0)
+    if not isinstance(estimator, amortised_module.Estimator):
+        estimator = amortised_module.load(amortised_module.DEFAULT_ARTEFACT if estimator is None else estimator)
+    obs = np.stack([amortised_module.observations(p) for p in patients])
+    heart_rate = np.array([float(p.heart.get("HR")) for p in patients])
+    base = np.array([amortised_module.base_index(p.heart, estimator.bases) for p in patients])
+    reasons = estimator.out_of_distribution(obs, heart_rate)
+    draws = estimator.sample(obs, heart_rate, base, n_samples, seed)
+    names = DEFAULT_ACTION_PARAMS
+    out = []
+    for x, reason in zip(draws, reasons):
+        samples = {n: x[:, j] for j, n in enumerate(names)}
+        blocks = x[: n_samples // 4 * 4].reshape(4, -1, len(names))
+        out.append(Posterior(
+            samples=samples,
+            median={n: float(np.median(v)) for n, v in samples.items()},
+            interval_90={n: (float(np.percentile(v, 5)), float(np.percentile(v, 95))) for n, v in samples.items()},
+            acceptance=float("nan"),
+            autocorr_time=dict.fromkeys(names, 1.0),
+            ess=dict.fromkeys(names, float(n_samples)),
+            rhat={n: _split_rhat(blocks[..., j]) for j, n in enumerate(names)},
+            evaluations=0,
+            failed=0,
+            pilot_steps=0,
+            sampler="amortised",
+            out_of_distribution=reason,
+        ))
+    return out
 
 
 #: The sampler's size settings that scripts expose as options (``--chain-steps`` for

@@ -1,0 +1,506 @@
+"""Amortised identification: a neural posterior estimator of the six parameters, trained once.
+
+A conditional normalising flow q(θ | c) learns :func:`optim.identify.posterior`'s posterior
+from simulated pairs (Papamakarios G & Murray I, NeurIPS 2016; Greenberg D et al., ICML 2019):
+θ is drawn from the same prior (:func:`optim.identify.prior_sample`: uniform in the unit cube of
+the identification bounds times the plausibility factor, usable hearts only), the heart is
+simulated by the same env, and the observation gets the same noise (:data:`optim.identify.NOISE`,
+:func:`optim.identify.measurement_sd`). Training maximises E log q(θ | c) over the pairs, which
+is minimised in expectation by the exact posterior; every later patient's posterior is one
+batched pass through the flow.
+
+Coordinates. θ enters as z = logit(u), u its unit-cube coordinate (log axes where marked), then
+standardised by the training set's mean and standard deviation; samples map back through the
+same steps, so they always lie inside the bounds. The condition vector c (:data:`CONDITION`) is
+
+* the :data:`OBSERVED` targets, each standardised by the training set and multiplied by its
+  mask bit (0 where missing), then the six mask bits: any subset of the targets may be missing.
+  Training masks drop each target independently with probability :data:`MISSING` (a row with
+  none left keeps one at random). EDV and ESV are left out: adding them would need the volume
+  noise model's relative errors and a larger training set for every mask; they can join the
+  same way (a mask bit each) in a later artefact;
+* the heart rate (1/min), drawn uniformly in the artefact's ``heart_rate`` range;
+* the six unloaded-geometry parameters of :class:`lvenv.geometry.Geometry` (mm, degrees),
+  standardised. Today each training heart is one of the artefact's base presets (``bases``),
+  so these columns only tell the bases apart; once anatomy-specific LO maps exist, a training
+  set drawn over the anatomy box uses the same columns.
+
+Flow: a coupling flow of rational-quadratic splines (Durkan C et al., NeurIPS 2019;
+``flowjax.flows.coupling_flow``), fast in both directions, trained by maximum likelihood with Adam
+(optax), each epoch one jitted ``lax.scan`` over its minibatches: a held-out fraction
+``val_prop`` of the pairs gives the validation loss (mean −log q in the standardised logit
+coordinates, nats), training stops after ``patience`` epochs without improvement (or at a time
+budget) and keeps the best epoch's parameters.
+
+Out-of-distribution check (:meth:`Estimator.out_of_distribution`). A patient is flagged when
+
+* its heart rate lies outside the training range; or
+* its observed targets are improbable under the training observations' density: a Gaussian
+  mixture (:data:`OOD_COMPONENTS` components, full covariances) fitted to the standardised noisy
+  training observations; for the patient's mask, its marginal log density (a Gaussian mixture
+  too) is compared with the :data:`OOD_QUANTILE` quantile of the held-out pairs' log densities
+  under the same marginal. So one in a thousand simulated patients is flagged (false alarms),
+  and any observation farther from every simulated heart than they are is.
+
+A flagged patient still gets samples, with ``Posterior.out_of_distribution`` set and the reason.
+
+Artefact: an :mod:`lvenv.archive` ``.npz`` (never pickle) of the flow's arrays (``flow_000``, …,
+in ``jax.tree.leaves`` order of the flow's arrays), the normalisation and the mixture, and JSON
+metadata: :data:`FORMAT` and :data:`VERSION`, the prior (bounds, log flags, plausibility bands,
+heart-rate range, base presets), the noise σ of each observed target, the training set (pairs,
+uniform draws tried, those left out by reason, seconds), the architecture, the validation loss,
+and the code version. :func:`load` rebuilds the flow from the architecture and checks every
+array's shape and every recorded setting against this code: a malformed file, another format or
+version, other bounds, noise, bands, bases or observation names give an
+:class:`lvenv.archive.ArchiveError` that says what differs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.metadata
+import pathlib
+import subprocess
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from lvenv import archive, presets
+from lvenv.archive import ArchiveError
+from lvenv.geometry import Geometry
+from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace, from_logit, to_logit
+from lvenv.params import Heart
+from lvenv.patients import Patient
+from lvenv.plausibility import resolve as resolve_bands
+from lvenv.validation import InputError, integer, real
+
+__all__ = ["OBSERVED", "GEOMETRY", "CONDITION", "BASES", "HEART_RATE", "MISSING", "OOD_QUANTILE", "OOD_COMPONENTS", "OOD_FIT_ROWS", "FORMAT", "VERSION",
+           "DEFAULT_ARTEFACT", "Architecture", "Estimator", "training_patients", "simulate", "train", "save", "load", "base_index", "observations"]
+
+#: The targets the estimator conditions on (internal units: EF fraction, times s, pressures kPa).
+OBSERVED = ("EF", "ET", "IVRT", "P_ao_dia", "P_ao_mean", "P_ao_pulse")
+#: The geometric columns of the condition (:class:`lvenv.geometry.Geometry`, unloaded: mm, degrees).
+GEOMETRY = tuple(f.name for f in dataclasses.fields(Geometry))
+#: Names of the condition vector's columns, in order (module docstring).
+CONDITION = (*OBSERVED, *(f"mask_{k}" for k in OBSERVED), "HR", *GEOMETRY)
+#: The base presets a default training set draws its hearts from (:mod:`lvenv.presets`).
+BASES = ("normal", "heart_failure")
+#: Default heart-rate range of the training set (1/min).
+HEART_RATE = (40.0, 120.0)
+#: Probability that a training row's target is masked out.
+MISSING = 0.3
+#: Quantile of the held-out log densities below which an observation is flagged.
+OOD_QUANTILE = 1e-3
+#: Components of the observation density of the out-of-distribution check.
+OOD_COMPONENTS = 8
+#: At most this many pairs fit the out-of-distribution mixture (the rest add little).
+OOD_FIT_ROWS = 200_000
+#: Artefact format name and version (:func:`load` accepts only these).
+FORMAT, VERSION = "lvenv-amortised-posterior", 1
+#: The shipped artefact (``scripts/train_amortised.py``; provenance in its metadata and
+#: ``optim/data/amortised.json``).
+DEFAULT_ARTEFACT = pathlib.Path(__file__).parent / "data" / "amortised.npz"
+
+
+@dataclasses.dataclass(frozen=True)
+class Architecture:
+    """The flow's shape: coupling layers, spline knots and interval (standardised units), and
+    the conditioner MLP's width and depth."""
+
+    flow_layers: int = 6
+    knots: int = 8
+    interval: float = 5.0
+    nn_width: int = 64
+    nn_depth: int = 2
+
+    def build(self, seed: int = 0) -> Any:
+        """A freshly initialised flow of this shape over the six parameters."""
+        import jax
+        import jax.numpy as jnp
+        from flowjax.bijections import RationalQuadraticSpline
+        from flowjax.distributions import Normal
+        from flowjax.flows import coupling_flow
+
+        return coupling_flow(jax.random.key(seed), base_dist=Normal(jnp.zeros(len(DEFAULT_ACTION_PARAMS))),
+                             transformer=RationalQuadraticSpline(knots=self.knots, interval=self.interval), cond_dim=len(CONDITION),
+                             flow_layers=self.flow_layers, nn_width=self.nn_width, nn_depth=self.nn_depth)
+
+
+def _arrays_of(flow: Any) -> list[np.ndarray]:
+    import equinox as eqx
+    import jax
+
+    return [np.asarray(a) for a in jax.tree.leaves(eqx.filter(flow, eqx.is_array))]
+
+
+def _with_arrays(flow: Any, arrays: Sequence[np.ndarray]) -> Any:
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    params, static = eqx.partition(flow, eqx.is_array)
+    leaves, tree = jax.tree.flatten(params)
+    return eqx.combine(jax.tree.unflatten(tree, [jnp.asarray(a, leaf.dtype) for a, leaf in zip(arrays, leaves)]), static)
+
+
+def _code_version() -> str:
+    """lvenv's package version (``unknown`` where it is not installed) and, in a git checkout,
+    the commit (``-dirty`` with local changes)."""
+    try:
+        version = importlib.metadata.version("lvenv")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown"
+    try:
+        root = pathlib.Path(__file__).parent
+        commit = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=root, capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ""
+    return f"{version}+{commit}" if commit else version
+
+
+def training_patients(bases: Sequence[str] = BASES) -> list[Patient]:
+    """One patient per base preset, targeting :data:`OBSERVED` (the target values are unused:
+    only their names reach :func:`optim.identify.prior_sample`)."""
+    targets = {"EF": 0.6, "ET": 0.3, "IVRT": 0.08, "P_ao_dia": 10.0, "P_ao_mean": 12.5, "P_ao_pulse": 6.0}
+    return [Patient(name, _base_heart(name), targets) for name in bases]
+
+
+def _base_heart(name: str) -> Heart:
+    if name not in BASES:
+        raise InputError(f"base {name!r} is not a preset the estimator knows; choose from {BASES}")
+    return getattr(presets, name)()
+
+
+def simulate(n: int, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, float] = HEART_RATE, seed: int = 0, batch: int = 256) -> Any:
+    """``n`` (parameters, noise-free observation) pairs from :func:`optim.identify.posterior`'s
+    prior (:func:`optim.identify.prior_sample`), each heart one of ``bases`` at a heart rate
+    uniform in ``heart_rate`` (1/min), simulated ``batch`` at a time; failed members are left out
+    and counted by status (``PriorSample.left_out``)."""
+    from optim.identify import prior_sample
+
+    return prior_sample(n, training_patients(bases), heart_rate=heart_rate, seed=seed, batch=batch)
+
+
+def _noise_sd(noise: Mapping[str, Any]) -> np.ndarray:
+    """σ of each :data:`OBSERVED` target (internal units); relative errors are not supported."""
+    from optim.identify import Relative, measurement_sd
+
+    relative = [k for k in OBSERVED if isinstance(noise.get(k), Relative)]
+    if relative:
+        raise InputError(f"the amortised estimator takes absolute measurement errors only; {relative} are relative")
+    return measurement_sd(dict.fromkeys(OBSERVED, 1.0), noise)
+
+
+def base_index(heart: Heart, bases: Sequence[str]) -> int:
+    """Index of the base preset ``heart`` is, up to the six parameters and the heart rate;
+    :class:`InputError` naming the bases if it is none of them."""
+    free = (*DEFAULT_ACTION_PARAMS, "HR")
+    for j, name in enumerate(bases):
+        if heart.replace(**{k: heart.get(k) for k in free}) == _base_heart(name).replace(**{k: heart.get(k) for k in free}):
+            return j
+    raise InputError(f"the patient's heart is none of the estimator's base presets {list(bases)} (up to {free}); "
+                     "the amortised posterior covers only those: use optim.identify.posterior")
+
+
+def observations(patient: Patient) -> np.ndarray:
+    """The patient's :data:`OBSERVED` targets (internal units), NaN where missing;
+    :class:`InputError` if it has a target the estimator does not condition on."""
+    extra = [k for k in patient.targets if k not in OBSERVED]
+    if extra:
+        raise InputError(f"patient {patient.name!r} has target(s) {extra} the amortised estimator does not condition on "
+                         f"(it takes any subset of {OBSERVED}); drop them or use optim.identify.posterior")
+    return np.array([float(patient.targets.get(k, np.nan)) for k in OBSERVED])
+
+
+def _mixture_log_density(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray, y: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """log Σ_j w_j N(y_m; μ_j,m, Σ_j,mm) of rows ``y`` (n, 6) over the columns ``mask`` (6,) bool."""
+    from scipy.special import logsumexp
+    from scipy.stats import multivariate_normal
+
+    m = np.flatnonzero(mask)
+    per = np.stack([np.log(w) + multivariate_normal(mu[m], cov[np.ix_(m, m)]).logpdf(y[:, m]).reshape(len(y))
+                    for w, mu, cov in zip(weights, means, covariances)], axis=1)
+    return logsumexp(per, axis=1)
+
+
+def _mask_code(mask: np.ndarray) -> np.ndarray:
+    """Integer code Σ_k 2^k mask_k of each row's mask (1 … 63)."""
+    return (np.asarray(mask, int) * (1 << np.arange(len(OBSERVED)))).sum(axis=-1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimator:
+    """A trained amortised posterior: the flow, the normalisation, the out-of-distribution
+    mixture and its thresholds, and the artefact's metadata (module docstring)."""
+
+    flow: Any
+    architecture: Architecture
+    arrays: dict[str, np.ndarray]  # normalisation and mixture (names as in the artefact)
+    meta: dict[str, Any]
+
+    @property
+    def bases(self) -> tuple[str, ...]:
+        return tuple(self.meta["prior"]["bases"])
+
+    @property
+    def heart_rate(self) -> tuple[float, float]:
+        return tuple(self.meta["prior"]["heart_rate"])
+
+    def condition(self, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """Condition vectors (n, len(:data:`CONDITION`)) of observations ``obs`` (n, 6; NaN where
+        missing, internal units), heart rates (n,) 1/min and base indices (n,)."""
+        mask = np.isfinite(obs)
+        y = np.where(mask, (obs - self.arrays["obs_mean"]) / self.arrays["obs_sd"], 0.0)
+        geometry = np.array([[getattr(_base_heart(b).geometry, g) for g in GEOMETRY] for b in self.bases])[np.asarray(base, int)]
+        rest = np.column_stack([heart_rate, geometry])
+        return np.column_stack([y, mask, (rest - self.arrays["rest_mean"]) / self.arrays["rest_sd"]])
+
+    def out_of_distribution(self, obs: np.ndarray, heart_rate: np.ndarray) -> list[str]:
+        """Per row of ``obs`` (n, 6; NaN where missing) and ``heart_rate`` (n,): ``""`` if in
+        distribution, else why not (module docstring)."""
+        mask = np.isfinite(obs)
+        y = (np.where(mask, obs, 0.0) - self.arrays["obs_mean"]) / self.arrays["obs_sd"]
+        lo, hi = self.heart_rate
+        reasons = [f"heart rate {h:g}/min outside the training range {lo:g}–{hi:g}" if not lo <= h <= hi else "" for h in heart_rate]
+        codes = _mask_code(mask)
+        for code in np.unique(codes):
+            rows = np.flatnonzero(codes == code)
+            density = _mixture_log_density(self.arrays["ood_weights"], self.arrays["ood_means"], self.arrays["ood_covariances"], y[rows], mask[rows[0]])
+            threshold = self.arrays["ood_threshold"][code]
+            for r, d in zip(rows, density):
+                if d < threshold:
+                    text = f"observation log density {d:.3g} below the training set's {OOD_QUANTILE:g} quantile {threshold:.3g}"
+                    reasons[r] = "; ".join(filter(None, [reasons[r], text]))
+        return reasons
+
+    def sample(self, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray, n_samples: int, seed: int = 0) -> np.ndarray:
+        """``n_samples`` posterior draws per row: (n, n_samples, 6), physical units, columns
+        :data:`DEFAULT_ACTION_PARAMS`."""
+        import jax
+        import paramax
+
+        flow = paramax.unwrap(self.flow)
+        cond = self.condition(obs, heart_rate, base)
+        z = np.asarray(jax.jit(lambda key, c: flow.sample(key, (n_samples,), condition=c))(jax.random.key(seed), cond))
+        z = np.swapaxes(z, 0, 1) * self.arrays["theta_sd"] + self.arrays["theta_mean"]
+        return ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).from_unit(from_logit(z))
+
+    def log_prob(self, x: np.ndarray, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """log q(z | c) of physical parameters ``x`` (n, 6) in the flow's standardised logit coordinates."""
+        z = (to_logit(ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).to_unit(x)) - self.arrays["theta_mean"]) / self.arrays["theta_sd"]
+        import paramax
+
+        return np.asarray(paramax.unwrap(self.flow).log_prob(z, self.condition(obs, heart_rate, base)))
+
+
+def _noisy_masked(clean: np.ndarray, sigma: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Observations with Gaussian noise σ and each target masked (NaN) with probability :data:`MISSING`."""
+    noisy = clean + sigma * rng.standard_normal(clean.shape)
+    mask = rng.random(clean.shape) >= MISSING
+    empty = ~mask.any(axis=1)
+    mask[np.flatnonzero(empty), rng.integers(len(OBSERVED), size=int(empty.sum()))] = True
+    return np.where(mask, noisy, np.nan)
+
+
+def _prior_meta(bases: Sequence[str], heart_rate: tuple[float, float]) -> dict[str, Any]:
+    return {"bounds": {n: [ACTION_BOUNDS[n].lo, ACTION_BOUNDS[n].hi, ACTION_BOUNDS[n].log] for n in DEFAULT_ACTION_PARAMS},
+            "plausibility": [b.describe() for b in resolve_bands(True)], "heart_rate": list(heart_rate), "bases": list(bases)}
+
+
+def train(
+    draws: Any,
+    *,
+    bases: Sequence[str] = BASES,
+    heart_rate: tuple[float, float] = HEART_RATE,
+    noise: Mapping[str, Any] | None = None,
+    architecture: Architecture = Architecture(),
+    seed: int = 0,
+    copies: int = 1,
+    val_prop: float = 0.1,
+    batch_size: int = 512,
+    learning_rate: float = 1e-3,
+    max_epochs: int = 200,
+    patience: int = 10,
+    max_seconds: float = float("inf"),
+    code_version: str | None = None,
+) -> Estimator:
+    """Train an estimator on ``draws`` (an :class:`optim.identify.PriorSample` of
+    :data:`OBSERVED` over ``bases`` and ``heart_rate``, e.g. from :func:`simulate`), each pair
+    used ``copies`` times with fresh noise and masks (module docstring). The first ``val_prop``
+    of the shuffled rows are the validation set; Adam (``learning_rate``, gradients clipped to
+    norm 10) on minibatches of ``batch_size`` for at most ``max_epochs`` epochs, stopping after
+    ``patience`` epochs without a better validation loss or once ``max_seconds`` have passed at
+    an epoch's end, and keeping the epoch with the best validation loss. ``code_version``: for
+    the metadata (default: lvenv's version and git commit, where known)."""
+    from sklearn.mixture import GaussianMixture
+
+    from optim.identify import NOISE
+
+    if tuple(draws.names) != OBSERVED:
+        raise InputError(f"the draws observe {draws.names}; the estimator needs {OBSERVED}")
+    seed, copies = integer("seed", seed, 0), integer("copies", copies, 1)
+    val_prop = real("val_prop", val_prop, 0.0, 0.5, lo_open=True)
+    sigma = _noise_sd(NOISE if noise is None else noise)
+    rng = np.random.default_rng(seed)
+    x = np.tile(draws.parameters, (copies, 1))
+    obs = _noisy_masked(np.tile(draws.observations, (copies, 1)), sigma, rng)
+    hr, base = np.tile(draws.heart_rate, copies), np.tile(draws.base, copies)
+    order = rng.permutation(len(x))
+    x, obs, hr, base = x[order], obs[order], hr[order], base[order]
+    z = to_logit(ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).to_unit(x))
+    geometry = np.array([[getattr(_base_heart(b).geometry, g) for g in GEOMETRY] for b in bases])[base]
+    rest = np.column_stack([hr, geometry])
+    rest_sd = rest.std(axis=0)
+    arrays = {"theta_mean": z.mean(axis=0), "theta_sd": z.std(axis=0), "obs_mean": np.nanmean(obs, axis=0), "obs_sd": np.nanstd(obs, axis=0),
+              "rest_mean": rest.mean(axis=0), "rest_sd": np.where(rest_sd > 0, rest_sd, 1.0)}
+    meta = {"format": FORMAT, "version": VERSION, "parameters": list(DEFAULT_ACTION_PARAMS), "observed": list(OBSERVED), "condition": list(CONDITION),
+            "prior": _prior_meta(bases, heart_rate), "noise": dict(zip(OBSERVED, map(float, sigma))),
+            "architecture": dataclasses.asdict(architecture)}
+    estimator = Estimator(architecture.build(seed), architecture, arrays, meta)
+    n_val = max(1, int(val_prop * len(x)))
+    theta, cond = (z - arrays["theta_mean"]) / arrays["theta_sd"], estimator.condition(obs, hr, base)
+    started = time.perf_counter()
+    flow, losses = _fit(estimator.flow, (theta[n_val:], cond[n_val:]), (theta[:n_val], cond[:n_val]), seed=seed, batch_size=batch_size,
+                        learning_rate=learning_rate, max_epochs=max_epochs, patience=patience, max_seconds=max_seconds)
+    seconds = time.perf_counter() - started
+    # The out-of-distribution mixture: fitted to fresh noisy full observations of the pairs; the
+    # thresholds come from the first val_prop of them, left out of the fit.
+    full = draws.observations + sigma * rng.standard_normal(draws.observations.shape)
+    y = (full - arrays["obs_mean"]) / arrays["obs_sd"]
+    n_val = max(1, int(val_prop * len(y)))
+    y = y[: n_val + OOD_FIT_ROWS]
+    gmm = GaussianMixture(min(OOD_COMPONENTS, max(1, (len(y) - n_val) // 50)), covariance_type="full", reg_covar=1e-4, random_state=seed)
+    gmm.fit(y[n_val:])
+    threshold = np.zeros(1 << len(OBSERVED))  # code 0, no target, never occurs
+    for code in range(1, 1 << len(OBSERVED)):
+        mask = (code >> np.arange(len(OBSERVED))) & 1 == 1
+        threshold[code] = np.quantile(_mixture_log_density(gmm.weights_, gmm.means_, gmm.covariances_, y[:n_val], mask), OOD_QUANTILE)
+    arrays.update(ood_weights=gmm.weights_, ood_means=gmm.means_, ood_covariances=gmm.covariances_, ood_threshold=threshold)
+    meta["training"] = {"pairs": int(len(draws.parameters)), "copies": copies, "tried": int(draws.tried), "left_out": dict(draws.left_out),
+                        "seed": seed, "val_prop": val_prop, "batch_size": batch_size, "learning_rate": learning_rate, "epochs": len(losses["train"]),
+                        "seconds": seconds, "train_loss": losses["train"], "validation_loss": losses["val"],
+                        "best_validation_loss": float(min(losses["val"]))}
+    meta["code_version"] = code_version or _code_version()
+    return Estimator(flow, architecture, arrays, meta)
+
+
+def _fit(flow: Any, train_set: tuple[np.ndarray, np.ndarray], val_set: tuple[np.ndarray, np.ndarray], *, seed: int, batch_size: int,
+         learning_rate: float, max_epochs: int, patience: int, max_seconds: float) -> tuple[Any, dict[str, list[float]]]:
+    """Maximum likelihood of ``flow`` on (θ, c) ``train_set`` with early stopping on ``val_set``
+    (:func:`train`); each epoch is one jitted ``lax.scan`` over its minibatches. Returns the best
+    flow and the per-epoch mean losses (−log q, nats)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import optax
+    import paramax
+
+    batch_size = integer("batch_size", batch_size, 1)
+    max_epochs, patience = integer("max_epochs", max_epochs, 1), integer("patience", patience, 1)
+    params, static = eqx.partition(flow, eqx.is_inexact_array, is_leaf=lambda leaf: isinstance(leaf, paramax.NonTrainable))
+    optimizer = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(learning_rate))
+    opt_state = optimizer.init(params)
+
+    def loss(p: Any, theta: jax.Array, cond: jax.Array) -> jax.Array:
+        return -jnp.mean(paramax.unwrap(eqx.combine(p, static)).log_prob(theta, cond))
+
+    @jax.jit
+    def epoch(p: Any, state: Any, theta: jax.Array, cond: jax.Array) -> tuple[Any, Any, jax.Array]:
+        def body(carry: Any, batch: tuple[jax.Array, jax.Array]) -> tuple[Any, jax.Array]:
+            p, state = carry
+            value, grads = jax.value_and_grad(loss)(p, *batch)
+            updates, state = optimizer.update(grads, state, p)
+            return (optax.apply_updates(p, updates), state), value
+
+        (p, state), values = jax.lax.scan(body, (p, state), (theta, cond))
+        return p, state, jnp.mean(values)
+
+    @jax.jit
+    def validation(p: Any, theta: jax.Array, cond: jax.Array) -> jax.Array:
+        return jax.lax.map(lambda batch: loss(p, *batch), (theta, cond)).mean()
+
+    def batched(a: np.ndarray, size: int) -> jax.Array:
+        count = max(1, len(a) // size)
+        return jnp.asarray(a[: count * size].reshape(count, size, *a.shape[1:]))
+
+    size = min(batch_size, len(train_set[0]))
+    val_size = min(4 * size, len(val_set[0]))
+    val = (batched(val_set[0], val_size), batched(val_set[1], val_size))
+    rng = np.random.default_rng(seed)
+    best, best_loss, losses = params, np.inf, {"train": [], "val": []}
+    started = time.perf_counter()
+    for _ in range(max_epochs):
+        order = rng.permutation(len(train_set[0]))
+        params, opt_state, value = epoch(params, opt_state, batched(train_set[0][order], size), batched(train_set[1][order], size))
+        losses["train"].append(float(value))
+        losses["val"].append(float(validation(params, *val)))
+        if losses["val"][-1] < best_loss:
+            best, best_loss = params, losses["val"][-1]
+        elif len(losses["val"]) - 1 - int(np.argmin(losses["val"])) >= patience:
+            break
+        if time.perf_counter() - started > max_seconds:
+            break
+    return eqx.combine(best, static), losses
+
+
+_ARRAY_NAMES = ("theta_mean", "theta_sd", "obs_mean", "obs_sd", "rest_mean", "rest_sd", "ood_weights", "ood_means", "ood_covariances", "ood_threshold")
+
+
+def save(estimator: Estimator, path: str | pathlib.Path) -> pathlib.Path:
+    """Write ``estimator`` to ``path`` as an :mod:`lvenv.archive` ``.npz`` (module docstring)."""
+    flow = {f"flow_{j:03d}": a for j, a in enumerate(_arrays_of(estimator.flow))}
+    return archive.save(path, {**flow, **estimator.arrays}, estimator.meta)
+
+
+def load(path: str | pathlib.Path = DEFAULT_ARTEFACT) -> Estimator:
+    """The estimator stored at ``path`` (default: the shipped one), checked against this code
+    (module docstring); :class:`lvenv.archive.ArchiveError` saying what is wrong otherwise."""
+    from optim.identify import NOISE
+
+    path = pathlib.Path(path)
+    if not path.exists():
+        raise ArchiveError(f"no trained amortised estimator at {str(path)!r}; train one with scripts/train_amortised.py")
+    arrays, meta = archive.load(path, "amortised estimator")
+    what = f"amortised estimator {str(path)!r}"
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise ArchiveError(f"{what} has format {meta.get('format')!r} version {meta.get('version')!r}; this code reads {FORMAT!r} version {VERSION}")
+    expected = {"parameters": list(DEFAULT_ACTION_PARAMS), "observed": list(OBSERVED), "condition": list(CONDITION)}
+    for key, value in expected.items():
+        if meta.get(key) != value:
+            raise ArchiveError(f"{what} was trained with {key} {meta.get(key)}, not {value}; retrain it (scripts/train_amortised.py)")
+    prior = meta.get("prior")
+    if not isinstance(prior, dict) or not isinstance(prior.get("bases"), list) or not isinstance(prior.get("heart_rate"), list):
+        raise ArchiveError(f"{what} has no valid prior in its metadata")
+    current = _prior_meta(prior["bases"], tuple(prior["heart_rate"])) if all(b in BASES for b in prior["bases"]) else None
+    if current is None or not _json_equal(prior, current):
+        raise ArchiveError(f"{what} was trained under the prior {prior}, but this code's is {current}; retrain it (scripts/train_amortised.py)")
+    sigma = dict(zip(OBSERVED, map(float, _noise_sd(NOISE))))
+    if meta.get("noise") != sigma:
+        raise ArchiveError(f"{what} was trained with the noise σ {meta.get('noise')}, but optim.identify.NOISE gives {sigma}; retrain it")
+    try:
+        architecture = Architecture(**meta["architecture"])
+        flow = architecture.build()
+    except (KeyError, TypeError, ValueError, InputError) as err:
+        raise ArchiveError(f"{what} has no valid architecture ({type(err).__name__}: {err})") from None
+    like = _arrays_of(flow)
+    names = [f"flow_{j:03d}" for j in range(len(like))]
+    missing = [k for k in (*names, *_ARRAY_NAMES) if k not in arrays]
+    unknown = sorted(set(arrays) - set(names) - set(_ARRAY_NAMES))
+    if missing or unknown:
+        raise ArchiveError(f"{what} lacks the arrays {missing} or has unexpected ones {unknown}: not an artefact of this architecture")
+    for name, a in zip(names, like):
+        if arrays[name].shape != a.shape:
+            raise ArchiveError(f"{what}: array {name} has shape {arrays[name].shape}, the architecture needs {a.shape}")
+    bad = [k for k, v in arrays.items() if v.dtype.kind not in "fiub" or not np.all(np.isfinite(v))]
+    if bad:
+        raise ArchiveError(f"{what}: arrays {bad} are not finite numbers")
+    return Estimator(_with_arrays(flow, [arrays[n] for n in names]), architecture, {k: arrays[k] for k in _ARRAY_NAMES}, meta)
+
+
+def _json_equal(a: Any, b: Any) -> bool:
+    """Whether two JSON-able values are equal after a JSON round trip (tuples as lists)."""
+    import json
+
+    return json.loads(json.dumps(a)) == json.loads(json.dumps(b))
