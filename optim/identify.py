@@ -104,6 +104,10 @@ their observations from the posterior's env; :func:`log_density` evaluates the u
 posterior density at any parameters, to rank a truth among the samples
 (``scripts/calibration.py``).
 
+:func:`amortised`: the posterior of any number of patients from the trained flow of
+:mod:`optim.amortised` (same prior, noise and observation model), one batched pass, with an
+out-of-distribution flag; :func:`prior_sample` draws its training pairs.
+
 :func:`write_report`: all of the above at a fit, as a per-patient markdown report with the profile
 curves and the posterior pairs plot as PNG (``lvenv fit PATIENT --report DIR``).
 """

@@ -271,7 +271,7 @@ def test_prior_draws_are_the_posteriors_prior_and_carry_their_own_observations()
         assert np.all((x[:, j] >= ACTION_BOUNDS[name].lo) & (x[:, j] <= ACTION_BOUNDS[name].hi)), name
     venv = make_env(patient, 16, STEPS, 30)
     venv.reset(seed=0)
-    again, ok, log_factor = _evaluate(venv, x, list(patient.targets), resolve(True))
+    again, ok, log_factor, _ = _evaluate(venv, x, list(patient.targets), resolve(True))
     venv.close()
     assert np.all(ok)
     # each env member starts from its previous heart's steady state, so the event times move a little with the history
