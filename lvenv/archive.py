@@ -18,7 +18,8 @@ import os
 import pathlib
 import tempfile
 import zipfile
-from typing import Any
+from collections.abc import Callable
+from typing import IO, Any
 
 import numpy as np
 
@@ -42,28 +43,23 @@ def save(path: str | os.PathLike[str], arrays: dict[str, Any], meta: dict[str, A
         if value.dtype.kind not in "biufU":
             raise TypeError(f"archive entry {name!r} has dtype {value.dtype}; only numbers, booleans and strings are stored")
     payload[META] = np.array(json.dumps(meta, allow_nan=True))
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
-    return target
+    return _replace(target, lambda fh: np.savez(fh, **payload), binary=True)
 
 
 def write_text(path: str | os.PathLike[str], text: str) -> pathlib.Path:
     """Atomically write UTF-8 ``text`` to ``path`` (a JSON record, a CSV rewritten on resume),
     the same way as :func:`save`: the old file or the new one, never half of one."""
-    target = pathlib.Path(path)
+    return _replace(pathlib.Path(path), lambda fh: fh.write(text), binary=False)
+
+
+def _replace(target: pathlib.Path, write: Callable[[IO], Any], *, binary: bool) -> pathlib.Path:
+    """``write`` into a temporary file beside ``target``, flush it to disk, then ``os.replace`` it
+    into place (module docstring); the temporary file is removed if anything fails."""
     target.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
+        with os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
+            write(fh)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, target)

@@ -298,7 +298,7 @@ def _open_config(directory: pathlib.Path, n, held_out, seed, settings: Settings 
                   "oracle_code": [oracle_cache.code_version(settings.backend)], "code": _code(),
                   "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
         directory.mkdir(parents=True, exist_ok=True)
-        _write_text(path, json.dumps(config, indent=2) + "\n")
+        archive.write_text(path, json.dumps(config, indent=2) + "\n")
         return config
     try:
         config = json.loads(path.read_text())
@@ -322,14 +322,8 @@ def _open_config(directory: pathlib.Path, n, held_out, seed, settings: Settings 
                                 "not be reused. Finished anatomies keep their results either way; pass allow_code_change (CLI: --allow-code-change) to "
                                 "continue with this code, or use another folder")
         config["oracle_code"].append(current)
-        _write_text(path, json.dumps(config, indent=2) + "\n")
+        archive.write_text(path, json.dumps(config, indent=2) + "\n")
     return config
-
-
-def _write_text(path: pathlib.Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
 
 
 def _format(value: Any) -> str:
@@ -346,7 +340,7 @@ def _write_index(directory: pathlib.Path, rows: Sequence[Mapping[str, Any]]) -> 
     writer.writerow(COLUMNS)
     for row in rows:
         writer.writerow([_format(row.get(c)) for c in COLUMNS])
-    _write_text(directory / "anatomies.csv", buffer.getvalue())
+    archive.write_text(directory / "anatomies.csv", buffer.getvalue())
 
 
 def read_index(directory: str | os.PathLike[str] = DATASET) -> list[dict[str, Any]]:

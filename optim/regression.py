@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from lvenv import archive
 from lvenv.anatomy import ARTEFACT, INPUTS, LO_OUTPUTS, Regression, kernel
 from lvenv.params import LOParams
 from lvenv.validation import InputError, integer
@@ -136,12 +137,7 @@ def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int =
 
 def save(regression: Regression, path: str | os.PathLike[str] = ARTEFACT) -> pathlib.Path:
     """Write the artefact (JSON) atomically; returns its path."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(regression.to_dict(), indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
-    return path
+    return archive.write_text(path, json.dumps(regression.to_dict(), indent=1) + "\n")
 
 
 
