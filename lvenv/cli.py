@@ -661,7 +661,7 @@ def campaign_run_command(directory, n, held_out, seed, backend, mesh_size, budge
         raise click.exceptions.Abort() from None
     if as_json:
         _print_json(counts)
-    return EXIT_OK if not counts["failed_fe"] and not counts["failed_training"] else EXIT_FAILED
+    return EXIT_FAILED if any(counts[s] for s in ("failed_fe", "failed_training", "failed_task")) else EXIT_OK
 
 
 @campaign_group.command("status", epilog=_EPILOG)

@@ -18,7 +18,8 @@ its key. Solves and workers use JAX's persistent compilation cache (`lvenv.jitca
 endocardium that crosses the epicardium, no cavity) is ``rejected_geometry``; one whose FE solve
 fails or times out (a mesh that fails included) is ``failed_fe``; one whose volume under ② never
 falls below :data:`CONTRACTION_LIMIT` × V0 is ``no_contraction`` (the paper's rule: γ, the
-compression map, needs it) and is not trained; a training that fails is ``failed_training``.
+compression map, needs it) and is not trained; a training that fails is ``failed_training``; a
+task that dies otherwise (its worker killed, an error outside the solves) is ``failed_task``.
 Only ``accepted`` anatomies enter the regression. Every reason is written down.
 
 **The dataset** (a folder, by default :data:`DATASET`, the package's ``lvenv/data/anatomy``):
@@ -95,7 +96,7 @@ FORMAT_VERSION = 1
 CONTRACTION_LIMIT = 0.85
 #: Oracle cases per anatomy, in order.
 CASES = ("passive", 1, 2, 3)
-STATUSES = ("pending", "accepted", "rejected_geometry", "failed_fe", "no_contraction", "failed_training")
+STATUSES = ("pending", "accepted", "rejected_geometry", "failed_fe", "no_contraction", "failed_training", "failed_task")
 _FINAL = frozenset(STATUSES) - {"pending"}
 TRAINED = tuple(f.name for f in dataclasses.fields(LOParams))
 COLUMNS = ("id", "split", "key", *GEOMETRY_COLUMNS, "V0_ml", "status", "reason", *TRAINED, "C", "C_1", "C_2", "C_3", "C_without_delay",
@@ -221,6 +222,10 @@ def solve_anatomy(task: Mapping[str, Any]) -> dict[str, Any]:
     # read back by the keys the solves wrote (this worker's code version may differ from theirs)
     directory = oracle_cache.default_dir() if task["cache_dir"] is None else pathlib.Path(task["cache_dir"])
     runs = {case: oracle_cache.load(directory, key) for case, key in keys.items()}
+    if lost := [case for case, run in runs.items() if run is None]:
+        out["fields"] = {"status": "failed_fe", "reason": f"cases {lost}: the solves finished but their cache entries are gone from {directory}"}
+        out["log"] = {"start": start, "end": time.time(), "fe_s": fe_s, "from_cache": cached}
+        return out
     data = congruency.OracleData(geometry, CellParams(), runs["passive"], {k: runs[str(k)] for k in congruency.CONDITIONS}, settings.backend,
                                  settings.oracle_options())
     out["traces"] = trace_archive(data)
@@ -429,11 +434,16 @@ def run(directory: str | os.PathLike[str] = DATASET, *, n: int | None = None, he
     with client(workers, scheduler) as handle:
         n_workers = max(1, len(handle.scheduler_info()["workers"]))
         tasks = [{"id": r["id"], "geometry": _geometry_of(r), "settings": dataclasses.asdict(settings), "cache_dir": cache_dir} for r in pending]
-        futures = [handle.submit(solve_anatomy, task, key=f"anatomy-{task['id']}-{by_id[task['id']]['key']}", pure=False) for task in tasks]
+        futures = {handle.submit(solve_anatomy, task, key=f"anatomy-{task['id']}-{by_id[task['id']]['key']}", pure=False): task["id"] for task in tasks}
         left = len(futures)
         for future in as_completed(futures):
             left -= 1
-            result = future.result()
+            try:
+                result = future.result()
+            except Exception as err:  # noqa: BLE001 - a dead worker or a bug fails this anatomy, not the campaign
+                now = time.time()
+                result = {"id": futures[future], "fields": {"status": "failed_task", "reason": f"{type(err).__name__}: {err}"}, "traces": None,
+                          "log": {"start": now, "end": now, "fe_s": {}, "from_cache": {}}}
             _record(directory, by_id[result["id"]], result, rows, session, n_workers)
             counts = _counts(rows, running=min(left, n_workers))
             if on_event is not None:
