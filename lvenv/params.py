@@ -201,7 +201,8 @@ def _check(heart: Heart) -> int | None:
             bad = ~np.isfinite(arr) | (arr < lo) | (arr > hi)
             if np.any(bad):
                 value = float(arr.ravel()[np.flatnonzero(bad.ravel())[0]])
-                raise InputError(f"{part}.{name} = {value:g} {units} is outside the allowed range [{lo:g}, {hi:g}]{_member(arr, bad)}")
+                shown = f"{value:g}" if units == "1" else f"{value:g} {units}"  # "1": dimensionless
+                raise InputError(f"{part}.{name} = {shown} is outside the allowed range [{lo:g}, {hi:g}]{_member(arr, bad)}")
             if values is not None and np.any(bad := ~np.isin(arr, values)):
                 value = float(arr.ravel()[np.flatnonzero(bad.ravel())[0]])
                 raise InputError(f"{part}.{name} = {value:g} must be one of {', '.join(f'{v:g}' for v in values)}{_member(arr, bad)}")

@@ -176,7 +176,7 @@ def test_run_checks_cell_parameters_as_lvenv_simulate_does_on_either_backend():
     for backend in ("dolfinx", "multielement"):
         with pytest.raises(InputError) as fe:
             fe_oracle.run(fe_oracle.N_UNLOADED, 2, backend, cell=CellParams(Sa=-5.0), use_cache=False)
-        assert str(fe.value) == str(lo.value) == "cell.Sa = -5 1 is outside the allowed range [0.05, 10]"
+        assert str(fe.value) == str(lo.value) == "cell.Sa = -5 is outside the allowed range [0.05, 10]"
     with pytest.raises(InputError, match="circulation.R3 = 50"):
         fe_oracle.run(fe_oracle.N_UNLOADED, Circulation(R3=50.0), use_cache=False)
     with pytest.raises(InputError, match="cell must be an lvenv.params.CellParams"):

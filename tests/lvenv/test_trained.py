@@ -35,7 +35,7 @@ def _set(part, field, value):
         (_set("lo", "mu1", None), r"lo.mu1 = None must be a finite real number"),
         (_set("cell", "Sa", [1.0, 2.0]), r"cell.Sa = \[1.0, 2.0\] must be a finite real number"),
         (_set("cell", "Sa", True), r"cell.Sa = True must be a finite real number"),
-        (_set("lo", "mu1", 5.0), r"lo.mu1 = 5 1 is outside the allowed range \[0.001, 1\]"),
+        (_set("lo", "mu1", 5.0), r"lo.mu1 = 5 is outside the allowed range \[0.001, 1\]"),
         (_set("lo", "extra", 1.0), r"lo has the unknown field\(s\) \['extra'\]"),
         (lambda r: r.__setitem__("lo", [0.1, 0.2]), r"lo = \[0.1, 0.2\] must be an object"),
         (lambda r: r.__setitem__("passive_rmse_ml", "small"), r"passive_rmse_ml = 'small' must be a finite real number ≥ 0"),
