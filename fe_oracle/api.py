@@ -17,7 +17,7 @@ from fe_oracle.cases import Passive, resolve_case
 from fe_oracle.material import Guccione
 from fe_oracle.result import OracleResult
 
-__all__ = ["ACTIVATIONS", "BACKENDS", "DEFAULT_DT", "INSTALL_HINT", "run", "load_backend"]
+__all__ = ["ACTIVATIONS", "BACKENDS", "DEFAULT_DT", "MAX_BEATS", "MAX_DURATION_S", "INSTALL_HINT", "run", "load_backend"]
 
 BACKENDS = ("dolfinx", "multielement")
 #: How the dolfinx backend's wall activates: from the eikonal solve (DESIGN §4, the default) or
@@ -26,6 +26,10 @@ BACKENDS = ("dolfinx", "multielement")
 ACTIVATIONS = ("eikonal", "synchronous")
 #: Default time step (s) per backend.
 DEFAULT_DT = {"dolfinx": 0.005, "multielement": 0.001}
+#: Most beats one oracle run may cover (an FE beat costs minutes; a steady state needs a few),
+#: and the longest ``duration`` (s): that many beats at the slowest heart rate, 20/min.
+MAX_BEATS = 100
+MAX_DURATION_S = MAX_BEATS * 3.0
 INSTALL_HINT = "pip install -e '.[fe]'"
 
 
@@ -66,7 +70,7 @@ def run(
     loop). ``mesh_size`` is the target edge length h (mm), ``dt`` the time step (s; default
     :data:`DEFAULT_DT` of the backend: 5 ms for dolfinx, 1 ms for multielement, whose valve
     timings need it), ``beats``
-    the number of beats from the documented initial state (LV at passive equilibrium with Pat,
+    the number of beats (at most :data:`MAX_BEATS`) from the documented initial state (LV at passive equilibrium with Pat,
     P_c(0) = Pc0, cells at rest); ``duration`` (s), if given, ends the run earlier. ``max_cuts`` bounds the halvings of a failing step (load or
     time), ``newton_max_it`` the Newton iterations per solve. ``activation``: one of
     :data:`ACTIVATIONS` (beats of the dolfinx backend only; ``"synchronous"`` sets every
@@ -90,9 +94,9 @@ def run(
         raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
     mesh_size = real("mesh_size", mesh_size, 0.0, lo_open=True)
     dt = real("dt", DEFAULT_DT[backend] if dt is None else dt, 0.0, 1.0, lo_open=True)
-    beats = integer("beats", beats, 1)
+    beats = integer("beats", beats, 1, MAX_BEATS)
     if duration is not None:
-        duration = real("duration", duration, 0.0, lo_open=True)
+        duration = real("duration", duration, 0.0, MAX_DURATION_S, lo_open=True)
     record = resolve_case(case)
     cell = CellParams() if cell is None else cell
     _check_heart(geometry, record, cell, lo)

@@ -87,6 +87,12 @@ def test_run_rejects_bad_arguments():
         fe_oracle.run(fe_oracle.N_UNLOADED, 2, activation="purkinje")
     with pytest.raises(ValueError, match="activation = 'synchronous' applies to backend 'dolfinx' only"):
         fe_oracle.run(fe_oracle.N_UNLOADED, 2, backend="multielement", activation="synchronous")
+    # unbounded work is refused before any computation, on either backend
+    for backend in fe_oracle.BACKENDS:
+        with pytest.raises(ValueError, match=r"beats = 1000000000 must be an integer in \[1, 100\]"):
+            fe_oracle.run(fe_oracle.N_UNLOADED, 2, backend=backend, beats=10**9)
+        with pytest.raises(ValueError, match=r"duration = 1000000.0 must be a finite real number in \(0, 300\]"):
+            fe_oracle.run(fe_oracle.N_UNLOADED, 2, backend=backend, duration=1e6)
 
 
 def _synthetic_beat(onset: float = 0.0):
