@@ -74,7 +74,7 @@ from lvenv import archive, jitcache
 from lvenv.geometry import Geometry, GeometryError, cavity_volume
 from lvenv.params import CellParams, LOParams
 from lvenv.trained import builtin
-from lvenv.validation import InputError, choice, integer, real
+from lvenv.validation import InputError, choice, integer, real, writable
 from optim import congruency
 from optim.cluster import client
 from optim.cohort import GEOMETRY_COLUMNS
@@ -410,8 +410,8 @@ def run(directory: str | os.PathLike[str] = DATASET, *, n: int | None = None, he
     folder's. ``workers``/``scheduler``: see `optim.cluster.client`. ``cache_dir``: the oracle's
     cache (default its own). ``limit``: stop after that many anatomies finish (None: all).
     ``on_event``: called with the counts after each finished anatomy and before the first."""
-    directory = pathlib.Path(directory)
-    cache_dir = None if cache_dir is None else str(pathlib.Path(cache_dir).resolve())
+    directory = writable("directory", directory, folder=True)
+    cache_dir = None if cache_dir is None else str(writable("cache_dir", cache_dir, folder=True).resolve())
     config = _open_config(directory, n, held_out, seed, settings, allow_code_change)
     settings = Settings(**config["settings"])
     expected = _initial_rows(config)

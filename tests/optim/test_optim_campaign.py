@@ -137,6 +137,16 @@ def test_local_cluster_runs_the_campaign_and_a_crashed_fe_solve_fails_only_its_a
     assert campaign.throughput(directory)[0]["anatomies"] == 3
 
 
+def test_unwritable_folders_are_refused_before_any_work(tmp_path):
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    with pytest.raises(InputError, match="directory = .*afile/camp.* cannot be made: .*afile' is a file"):
+        campaign.run(blocker / "camp", n=1, settings=TINY)
+    with pytest.raises(InputError, match="cache_dir = .*afile' must be a folder"):
+        campaign.run(tmp_path / "camp", n=1, settings=TINY, cache_dir=blocker)
+    assert not (tmp_path / "camp").exists()
+
+
 def test_unknown_scheduler_address_is_named(tmp_path):
     with pytest.raises(InputError, match=r"tcp://127\.0\.0\.1:9"):
         campaign.run(tmp_path / "c", n=1, settings=TINY, scheduler="tcp://127.0.0.1:9")
