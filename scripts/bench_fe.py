@@ -1,21 +1,33 @@
 """Benchmark the FE oracle: passive inflation and a coupled beat (N, ②); prints one JSON object.
 
     python scripts/bench_fe.py [--mesh-sizes 6 4] [--repeats 3] [--beat-mesh-sizes 10 6] [--dt 0.01] [--skip-beat]
+                               [--skip-passive]
 
 Targets (issue 5, 2-core machine): passive inflation ≤ 20 s, coarse active beat ≤ 3 min; each
 is run on the default and the next finer mesh. Runs bypass the cache (``use_cache=False``); form
 compilation is warmed up first so it is not counted. Passive timings are medians over
 ``--repeats`` runs; a beat is timed once. The beat's metrics come from
 :func:`fe_oracle.metrics.beat_metrics` (internal units: ml, s, kPa).
+
+A beat's ``breakdown_s`` splits its time (s) into the Jacobian and residual assemblies, the LU
+factorisations and triangular solves (PETSc's event log), the cell update at the quadrature
+points and the 0-D circulation steps (profiled functions), and the rest. Only public names of
+:mod:`fe_oracle` are used, so the script times any checkout: run it with ``PYTHONPATH`` set to
+each of two checkouts, alternately, for a paired before/after ratio.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
+import pstats
 import time
 
 import numpy as np
+
+import dolfinx_solver  # noqa: F401  (must precede petsc4py)
+from petsc4py import PETSc
 
 import fe_oracle
 from fe_oracle.cases import N_UNLOADED, Passive
@@ -45,11 +57,42 @@ def _passive(h: float, repeats: int) -> dict:
     }
 
 
+_PETSC_EVENTS = {
+    "jacobian_assembly": ("SNESJacobianEval",),
+    "residual_assembly": ("SNESFunctionEval",),
+    "lu_factorisation": ("MatLUFactorSym", "MatLUFactorNum"),
+    "triangular_solves": ("MatSolve",),
+}
+_PROFILED = {"cell_update": "_advance_cells", "circulation_0d": "zero_d_step"}
+
+
+def _petsc_seconds(events) -> float:
+    return sum(PETSc.Log.Event(name).getPerfInfo()["time"] for name in events)
+
+
+def _timed_beat(h: float, dt: float):
+    """(result, seconds, breakdown in s) of one beat: PETSc events and profiled functions."""
+    PETSc.Log.begin()
+    before = {key: _petsc_seconds(events) for key, events in _PETSC_EVENTS.items()}
+    profile = cProfile.Profile()
+    t0 = time.perf_counter()
+    try:
+        res = profile.runcall(fe_oracle.run, N_UNLOADED, 2, mesh_size=h, dt=dt, use_cache=False)
+    finally:
+        seconds = time.perf_counter() - t0
+    breakdown = {key: _petsc_seconds(events) - before[key] for key, events in _PETSC_EVENTS.items()}
+    stats = pstats.Stats(profile).stats
+    for key, name in _PROFILED.items():
+        breakdown[key] = sum(row[3] for (_, _, function), row in stats.items() if function == name)
+    breakdown["other"] = seconds - sum(breakdown.values())
+    return res, seconds, breakdown
+
+
 def _beat(h: float, dt: float) -> dict:
     t0 = time.perf_counter()
     out = {"mesh_size_mm": h, "dt_s": dt, "target_s": 180.0}
     try:
-        res = fe_oracle.run(N_UNLOADED, 2, mesh_size=h, dt=dt, use_cache=False)
+        res, seconds, breakdown = _timed_beat(h, dt)
     except fe_oracle.OracleDidNotConverge as err:
         return dict(out, converged=False, failed_at_s=err.time, last_residual=err.residual, seconds=time.perf_counter() - t0)
     m = res.metadata
@@ -57,7 +100,8 @@ def _beat(h: float, dt: float) -> dict:
     return dict(
         out,
         converged=True,
-        seconds=time.perf_counter() - t0,
+        seconds=seconds,
+        breakdown_s=breakdown,
         cells=m["cells"],
         steps=m["steps"],
         fe_solves=m["fe_solves"],
@@ -76,9 +120,10 @@ def main() -> None:
     parser.add_argument("--beat-mesh-sizes", type=float, nargs="+", default=[10.0, 6.0], help="coupled beat mesh sizes h (mm): coarse and finer")
     parser.add_argument("--dt", type=float, default=0.01)
     parser.add_argument("--skip-beat", action="store_true")
+    parser.add_argument("--skip-passive", action="store_true")
     args = parser.parse_args()
     fe_oracle.run(N_UNLOADED, Passive(p_max=0.25, n_points=2), mesh_size=10.0, use_cache=False)  # warm-up: JIT
-    report = {"passive": [_passive(h, args.repeats) for h in args.mesh_sizes]}
+    report = {"fe_oracle": fe_oracle.__file__, "passive": [] if args.skip_passive else [_passive(h, args.repeats) for h in args.mesh_sizes]}
     if len(report["passive"]) >= 2:
         v = [r["V_at_4kPa_ml"] for r in report["passive"]]
         report["mesh_convergence_V4_change"] = abs(v[1] - v[0]) / v[1]
