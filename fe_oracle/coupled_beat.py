@@ -10,7 +10,9 @@ Coupled beat (DESIGN §1.2, §4), one time step t → t + dt:
    giving V_FE(P), and the 0-D circulation takes an implicit (backward Euler) step with P,
    giving the target volume V_0D(P) = Vₙ + dt (Q_mv − Q_ao). A safeguarded secant (kept inside
    a sign-change bracket, bisection otherwise, slope carried between steps, a trial pressure
-   whose wall solve fails is pulled back towards the last good one) drives
+   whose wall solve fails is pulled back towards the last good one; each trial's Newton solve
+   starts from the last one's displacement moved along the tangent du/dP of
+   :meth:`~fe_oracle.mechanics.Solid.pressure_tangent`) drives
    r(P) = V_FE(P) − V_0D(P) below ``volume_tol``. The state carries V_0D, not V_FE, so the
    tolerance never accumulates into a drift of blood volume.
 3. Corrector: the cell state is advanced again with the converged stretch λₙ₊₁.
@@ -140,6 +142,11 @@ class CoupledBeat:
         entry["volume_mismatch"] = v_fe - v0d
         return v_fe - v0d, (v_fe, v0d, p_c, p_at, p_ao)
 
+    def _evaluate_from(self, u_guess, p, dt):
+        """:meth:`_evaluate` with the wall solve started from ``u_guess``."""
+        self.m.solid.u.x.array[:] = u_guess
+        return self._evaluate(p, dt)
+
     def _pressure_solve(self, dt, max_evals=12):
         """Safeguarded secant on r(P); returns the accepted (P, outputs) or None."""
         p = self.p_lv + (self.p_lv - self.p_lv_prev) * dt / self.dt_prev
@@ -173,12 +180,14 @@ class CoupledBeat:
             p_new = p + step
             if not (lo < p_new < hi):
                 p_new = 0.5 * (lo + hi) if math.isfinite(lo) and math.isfinite(hi) else (p + step * 0.5)
-            out = self._evaluate(p_new, dt)
+            tangent = self.m.solid.pressure_tangent()
+            u_p = self.m.solid.u.x.array.copy()
+            out = self._evaluate_from(u_p + tangent * (p_new - p), p_new, dt)
             for _ in range(3):  # a trial pressure too far for Newton: move back towards p
                 if out is not None:
                     break
                 p_new = p + 0.25 * (p_new - p)
-                out = self._evaluate(p_new, dt)
+                out = self._evaluate_from(u_p + tangent * (p_new - p), p_new, dt)
             if out is None:
                 return None
             r_new, data_new = out

@@ -230,6 +230,7 @@ class Solid:
         else:
             raise ValueError(f"volume_form must be 'lv' or 'sphere_octant', got {volume_form!r}")
         self._volume = dolfinx.fem.form(vol)
+        self._load = dolfinx.fem.form(ufl.inner(traction, v) * ds(pressure_tag))
         self._options = {
             "snes_type": "newtonls",
             "snes_rtol": 1e-9,
@@ -331,6 +332,26 @@ class Solid:
             self.u.x.array[:] = backup
             self._jacobian_stale = True
         return SolveReport(False, reason, iterations, residual)
+
+    def pressure_tangent(self) -> np.ndarray:
+        """du/dp (mm/kPa) at the current state, by the Jacobian's last LU factors.
+
+        Differentiating R(u, p) = 0 gives K du/dp = −∂R/∂p = −∫_endo J F⁻ᵀN · v dA; K is the
+        last Jacobian of the reuse policy, exact at the state it was built at, so a
+        predictor u + (du/dp) Δp is accurate to first order in Δp and in the state's change since.
+        """
+        load = dolfinx.fem.petsc.assemble_vector(self._load)
+        load.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        dolfinx.fem.petsc.set_bc(load, self.bcs)
+        tangent = self.u.x.petsc_vec.duplicate()
+        self.snes.getKSP().solve(load, tangent)
+        tangent.scale(-1.0)
+        tangent.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        with tangent.localForm() as local:
+            out = local.array.copy()
+        load.destroy()
+        tangent.destroy()
+        return out
 
     def volume(self) -> float:
         """Deformed cavity volume (ml)."""

@@ -11,9 +11,10 @@ compilation is warmed up first so it is not counted. Passive timings are medians
 
 A beat's ``breakdown_s`` splits its time (s) into the Jacobian and residual assemblies, the LU
 factorisations and triangular solves (PETSc's event log), the cell update at the quadrature
-points and the 0-D circulation steps (profiled functions), and the rest. Only public names of
-:mod:`fe_oracle` are used, so the script times any checkout: run it with ``PYTHONPATH`` set to
-each of two checkouts, alternately, for a paired before/after ratio.
+points and the stretch interpolation (profiled methods of the coupled beat), and the rest.
+Only :func:`fe_oracle.run` and method names are used, so the script times any checkout: run it
+with ``PYTHONPATH`` set to each of two checkouts, alternately, for a paired before/after ratio.
+Issue 29's target: a default-mesh (h = 6 mm) beat ≤ 60 s on one core.
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ _PETSC_EVENTS = {
     "lu_factorisation": ("MatLUFactorSym", "MatLUFactorNum"),
     "triangular_solves": ("MatSolve",),
 }
-_PROFILED = {"cell_update": "_advance_cells", "circulation_0d": "zero_d_step"}
+_PROFILED = {"cell_update": "_advance_cells", "stretch_interpolation": "stretch"}
 
 
 def _petsc_seconds(events) -> float:
