@@ -11,7 +11,10 @@ compilation is warmed up first so it is not counted. Passive timings are medians
 
 A beat's ``breakdown_s`` splits its time (s) into the Jacobian and residual assemblies, the LU
 factorisations and triangular solves (PETSc's event log), the cell update at the quadrature
-points and the stretch interpolation (profiled methods of the coupled beat), and the rest.
+points and the stretch interpolation (profiled methods of the coupled beat), and the rest;
+``counts`` gives the LU factorisations (one per Jacobian assembled), residual assemblies and
+triangular solves, and ``cpu_seconds`` the process's CPU time, steadier than the wall time on
+a loaded machine.
 Only :func:`fe_oracle.run` and method names are used, so the script times any checkout: run it
 with ``PYTHONPATH`` set to each of two checkouts, alternately, for a paired before/after ratio.
 Issue 29's target: a default-mesh (h = 6 mm) beat ≤ 60 s on one core.
@@ -65,35 +68,38 @@ _PETSC_EVENTS = {
     "triangular_solves": ("MatSolve",),
 }
 _PROFILED = {"cell_update": "_advance_cells", "stretch_interpolation": "stretch"}
+_COUNTED = {"lu_factorisations": ("MatLUFactorNum",), "residual_assemblies": ("SNESFunctionEval",), "triangular_solves": ("MatSolve",)}
 
 
-def _petsc_seconds(events) -> float:
-    return sum(PETSc.Log.Event(name).getPerfInfo()["time"] for name in events)
+def _petsc_log(events, field: str) -> float:
+    return sum(PETSc.Log.Event(name).getPerfInfo()[field] for name in events)
 
 
 def _timed_beat(h: float, dt: float):
-    """(result, seconds, breakdown in s) of one beat: PETSc events and profiled functions."""
+    """(result, wall s, CPU s, breakdown in s, operation counts) of one beat."""
     PETSc.Log.begin()
-    before = {key: _petsc_seconds(events) for key, events in _PETSC_EVENTS.items()}
+    before = {key: _petsc_log(events, "time") for key, events in _PETSC_EVENTS.items()}
+    counts_before = {key: _petsc_log(events, "count") for key, events in _COUNTED.items()}
     profile = cProfile.Profile()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     try:
         res = profile.runcall(fe_oracle.run, N_UNLOADED, 2, mesh_size=h, dt=dt, use_cache=False)
     finally:
-        seconds = time.perf_counter() - t0
-    breakdown = {key: _petsc_seconds(events) - before[key] for key, events in _PETSC_EVENTS.items()}
+        seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - cpu0
+    breakdown = {key: _petsc_log(events, "time") - before[key] for key, events in _PETSC_EVENTS.items()}
     stats = pstats.Stats(profile).stats
     for key, name in _PROFILED.items():
         breakdown[key] = sum(row[3] for (_, _, function), row in stats.items() if function == name)
     breakdown["other"] = seconds - sum(breakdown.values())
-    return res, seconds, breakdown
+    counts = {key: int(_petsc_log(events, "count") - counts_before[key]) for key, events in _COUNTED.items()}
+    return res, seconds, cpu_seconds, breakdown, counts
 
 
 def _beat(h: float, dt: float) -> dict:
     t0 = time.perf_counter()
     out = {"mesh_size_mm": h, "dt_s": dt, "target_s": 180.0}
     try:
-        res, seconds, breakdown = _timed_beat(h, dt)
+        res, seconds, cpu_seconds, breakdown, counts = _timed_beat(h, dt)
     except fe_oracle.OracleDidNotConverge as err:
         return dict(out, converged=False, failed_at_s=err.time, last_residual=err.residual, seconds=time.perf_counter() - t0)
     m = res.metadata
@@ -102,7 +108,9 @@ def _beat(h: float, dt: float) -> dict:
         out,
         converged=True,
         seconds=seconds,
+        cpu_seconds=cpu_seconds,
         breakdown_s=breakdown,
+        counts=counts,
         cells=m["cells"],
         steps=m["steps"],
         fe_solves=m["fe_solves"],
