@@ -308,8 +308,8 @@ def _open_config(directory: pathlib.Path, n, held_out, seed, settings: Settings 
     try:
         config = json.loads(path.read_text())
         stored = Settings(**config["settings"])
-        for name in ("format", "box", "n", "held_out", "seed", "oracle_code"):
-            config[name]
+        if missing := [name for name in ("format", "box", "n", "held_out", "seed", "oracle_code") if name not in config]:
+            raise KeyError(f"fields {missing}")
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise CampaignError(f"{str(path)!r} is not a campaign file ({type(err).__name__}: {err})") from None
     if config["format"] != FORMAT_VERSION:
