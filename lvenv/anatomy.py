@@ -178,7 +178,9 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
     ``regression``: a :class:`Regression`, a path to an artefact, or None for the shipped one
     (:data:`ARTEFACT`). The record's ``congruency["C"]`` is the predicted C of a heart trained
     on this anatomy; ``provenance["sd"]`` holds the predictive sd of every parameter and of C
-    (same units), ``provenance["outside_box"]`` the parameters outside the sampled box.
+    (same units), ``provenance["outside_box"]`` the parameters outside the sampled box, and
+    ``provenance["clipped"]`` any predicted parameter that fell outside its allowed range
+    (:class:`~lvenv.params.LOParams`) and was clipped into it, with a warning.
     """
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
@@ -191,10 +193,20 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
     for message in outside:
         warnings.warn(f"{message}: the anatomy regression extrapolates there", ExtrapolationWarning, stacklevel=2)
     mean, sd = regression.predict([geometry])
-    lo = LOParams(**{n: float(mean[n][0]) for n in LO_OUTPUTS})
+    values, clipped = {}, []
+    for field in dataclasses.fields(LOParams):
+        low, high = field.metadata["range"]
+        value = float(mean[field.name][0])
+        values[field.name] = min(max(value, low), high)
+        if values[field.name] != value:
+            clipped.append(f"lo.{field.name} = {value:g} predicted, clipped to its allowed range [{low:g}, {high:g}]")
+    for message in clipped:
+        warnings.warn(message, ExtrapolationWarning, stacklevel=2)
     c = float(mean["C"][0]) if "C" in mean else math.nan
     provenance = {"source": "gaussian-process regression over geometry", "sd": {k: float(v[0]) for k, v in sd.items()},
-                  "outside_box": outside, "training_anatomies": len(regression.ids), **{k: v for k, v in regression.provenance.items() if k != "cv"}}
+                  "outside_box": outside, "clipped": clipped, "training_anatomies": len(regression.ids),
+                  **{k: v for k, v in regression.provenance.items() if k not in ("cv", "cv_predictions")}}
+    lo = LOParams(**values)
     return TrainedLO(geometry, lo, CellParams() if cell is None else cell, {"C": c}, None, math.nan, provenance)
 
 

@@ -158,3 +158,15 @@ def test_anatomy_figures_are_drawn_from_the_regression(fitted, tmp_path):
     assert all(p.stat().st_size > 10_000 for p in paths)
     with pytest.raises(InputError, match="must end in one of"):
         plots.parity_figure(truth, truth, truth, tmp_path / "parity.svg")
+
+
+def test_a_prediction_outside_a_parameters_range_is_clipped_with_a_warning(fitted):
+    import dataclasses
+
+    from lvenv.params import LOParams
+
+    shifted = dataclasses.replace(fitted, outputs={**fitted.outputs, "delay": fitted.outputs["delay"] | {"mean": -1.0}}, _gps={})
+    with pytest.warns(ExtrapolationWarning, match=r"lo.delay = -0.9\d* predicted, clipped to its allowed range \[0, "):
+        trained = anatomy.from_geometry(Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0), shifted)
+    low = next(f for f in dataclasses.fields(LOParams) if f.name == "delay").metadata["range"][0]
+    assert trained.lo.delay == low and trained.provenance["clipped"]
