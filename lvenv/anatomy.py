@@ -39,12 +39,12 @@ from typing import Any
 import numpy as np
 from scipy.optimize import brentq
 
-from lvenv.geometry import Geometry, GeometryError, wall_volume
+from lvenv.geometry import Geometry, GeometryError, cavity_volume, wall_volume
 from lvenv.params import CellParams, LOParams
 from lvenv.trained import DATA, TrainedLO
 from lvenv.validation import InputError, real
 
-__all__ = ["ARTEFACT", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "ExtrapolationWarning", "Regression", "kernel", "from_geometry", "unload"]
+__all__ = ["ARTEFACT", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "from_geometry", "unload", "inflate", "unload_to_volume"]
 
 ARTEFACT = DATA / "anatomy" / "regression.json"
 FORMAT_VERSION = 1
@@ -214,23 +214,12 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
 ED_STRAIN = {"N": 0.10, "HF": 0.15}
 
 
-def unload(end_diastolic: Geometry, strain: float) -> Geometry:
-    """The unloaded geometry of an imaged end-diastolic one under an assumed mid-wall strain ε
-    (the paper's rule, :data:`ED_STRAIN`; our reading of it, DESIGN §5):
-
-    * the mid-wall basal radius Rb − L/2 and the mid-wall long axis Z − H/2 shrink by 1/(1 + ε);
-    * the wall thickens by one factor s on L and H such that the wall volume is kept
-      (incompressible myocardium; :func:`lvenv.geometry.wall_volume`), s found by Brent's method;
-    * the shape e and the truncation C0 are kept.
-
-    ``strain`` ≥ 0 (0 returns the geometry itself). Raises :class:`GeometryError` if no valid
-    geometry keeps the wall volume.
-    """
-    strain = real("strain", strain, 0.0, 1.0)
-    g = end_diastolic
-    if strain == 0.0:
-        return g
-    radius, axis = (g.Rb - g.L / 2) / (1 + strain), (g.Z - g.H / 2) / (1 + strain)
+def _midwall_scaled(g: Geometry, factor: float) -> Geometry:
+    """``g`` with its mid-wall basal radius Rb − L/2 and mid-wall long axis Z − H/2 scaled by
+    ``factor`` and its wall thickness L, H by the one factor s that keeps the wall volume
+    (incompressible myocardium; :func:`lvenv.geometry.wall_volume`), s found by Brent's method;
+    e and C0 kept. :class:`GeometryError` if no valid geometry keeps the wall volume."""
+    radius, axis = (g.Rb - g.L / 2) * factor, (g.Z - g.H / 2) * factor
     target = wall_volume(g)
 
     def shaped(s: float) -> Geometry:
@@ -242,9 +231,85 @@ def unload(end_diastolic: Geometry, strain: float) -> Geometry:
         except GeometryError:
             return math.inf
 
-    hi = 1.0
-    while excess(hi) < 0 and hi < 4.0:
-        hi *= 1.25
-    if not excess(1.0) < 0 < excess(hi) or not math.isfinite(excess(hi)):
-        raise GeometryError(f"no unloaded geometry keeps the wall volume of {g} under strain = {strain}")
-    return shaped(brentq(excess, 1.0, hi, xtol=1e-12))
+    if factor == 1.0:
+        return g
+    low = high = 1.0  # a smaller cavity needs a thicker wall for the same volume (s > 1), a larger one a thinner (s < 1)
+    while factor < 1.0 and excess(high) < 0 and high < 4.0:
+        high *= 1.25
+    while factor > 1.0 and excess(low) > 0 and low > 0.1:
+        low *= 0.8
+    if not excess(low) <= 0 <= excess(high) or not math.isfinite(excess(high)):
+        raise GeometryError(f"no geometry keeps the wall volume of {g} with its mid-wall dimensions scaled by {factor:g}")
+    return shaped(brentq(excess, low, high, xtol=1e-12))
+
+
+def unload(end_diastolic: Geometry, strain: float) -> Geometry:
+    """The unloaded geometry of an imaged end-diastolic one under an assumed mid-wall strain ε
+    (the paper's rule, :data:`ED_STRAIN`; our reading of it, DESIGN §5):
+
+    * the mid-wall basal radius Rb − L/2 and the mid-wall long axis Z − H/2 shrink by 1/(1 + ε);
+    * the wall thickens by one factor s on L and H such that the wall volume is kept
+      (incompressible myocardium; :func:`lvenv.geometry.wall_volume`), s found by Brent's method;
+    * the shape e and the truncation C0 are kept.
+
+    ``strain`` ≥ 0 (0 returns the geometry itself). Raises :class:`GeometryError` if no valid
+    geometry keeps the wall volume. :func:`inflate` is its inverse.
+    """
+    strain = real("strain", strain, 0.0, 1.0)
+    return _midwall_scaled(end_diastolic, 1.0 / (1.0 + strain))
+
+
+def inflate(unloaded: Geometry, strain: float) -> Geometry:
+    """The end-diastolic geometry the paper's rule assigns to an unloaded one under mid-wall
+    strain ε: the inverse of :func:`unload` (mid-wall dimensions × (1 + ε), the wall thinned to
+    keep its volume). ``strain`` in [0, 1]; :class:`GeometryError` if no valid geometry exists."""
+    strain = real("strain", strain, 0.0, 1.0)
+    return _midwall_scaled(unloaded, 1.0 + strain)
+
+
+#: The strains :func:`unload_to_volume` searches (the paper's rule takes 0.10–0.15).
+STRAIN_RANGE = (0.0, 0.6)
+
+
+def unload_to_volume(end_diastolic: Geometry, edp: float, regression: Regression | str | pathlib.Path | None = None, *,
+                     lo: LOParams | None = None) -> tuple[Geometry, float]:
+    """The unloaded geometry whose predicted passive curve reaches the imaged cavity volume
+    (``cavity_volume(end_diastolic)``, ml) at the end-diastolic pressure ``edp`` (kPa), and its
+    strain ε.
+
+    The search runs over the rule's family ``unload(end_diastolic, ε)``, ε in
+    :data:`STRAIN_RANGE`, by Brent's method: at each ε the LO passive volume at ``edp``
+    (:func:`lvenv.coupling.passive_volume`) is computed with the maps the regression predicts
+    for that unloaded shape (:func:`from_geometry`), or with fixed maps ``lo`` when given. So the
+    strain comes from the anatomy's own stiffness instead of the assumed 10 or 15 %.
+    :class:`InputError` naming the values if no strain in the range reaches the volume.
+    """
+    from lvenv.coupling import passive_volume
+
+    if not isinstance(end_diastolic, Geometry):
+        raise InputError(f"end_diastolic must be an lvenv.geometry.Geometry, got {type(end_diastolic).__name__}")
+    edp = real("edp", edp, 0.0, 10.0)
+    if lo is None and not isinstance(regression, Regression):
+        regression = _shipped(str(ARTEFACT if regression is None else pathlib.Path(regression).resolve()))
+    edv = cavity_volume(end_diastolic)
+
+    def maps(g: Geometry) -> LOParams:
+        if lo is not None:
+            return lo
+        with warnings.catch_warnings():  # the solution's warnings are given once, below
+            warnings.simplefilter("ignore", ExtrapolationWarning)
+            return from_geometry(g, regression).lo
+
+    def gap(strain: float) -> float:
+        g = unload(end_diastolic, strain)
+        return float(passive_volume(edp, cavity_volume(g), maps(g))) - edv
+
+    low, high = STRAIN_RANGE
+    if not gap(low) >= 0.0 >= gap(high):
+        raise InputError(f"no unloaded shape with a mid-wall strain in [{low:g}, {high:g}] reaches the imaged volume {edv:.1f} ml "
+                         f"at edp = {edp:g} kPa: the LO passive volume there spans [{gap(high) + edv:.1f}, {gap(low) + edv:.1f}] ml")
+    strain = low if gap(low) == 0.0 else brentq(gap, low, high, xtol=1e-10)
+    unloaded = unload(end_diastolic, strain)
+    if lo is None:
+        from_geometry(unloaded, regression)  # its extrapolation and clipping warnings, once
+    return unloaded, strain

@@ -5,7 +5,10 @@
 Reads the campaign's dataset (`optim.campaign`; no FE run), counts the anatomies by status with
 every reason for leaving one out, and the throughput per session and worker count from the
 campaign's own log, and the paper's unloading rule (`lvenv.anatomy.unload`) on the Table 1
-end-diastolic anatomies against their unloaded ones. With at least `optim.regression.MIN_ANATOMIES` accepted training anatomies
+end-diastolic anatomies against their unloaded ones and, through the oracle's passive curves of
+the accepted anatomies, against the FE wall (`optim.unloading.check`: the rule's EDV and V0
+errors, the strain the wall has at EDP, and V0 recovered by the passive-curve search
+`lvenv.anatomy.unload_to_volume` with each anatomy's trained maps and with the GP's). With at least `optim.regression.MIN_ANATOMIES` accepted training anatomies
 it fits the regression (`optim.regression.fit`, 5-fold cross-validation), writes the artefact
 (default: the package's, which `lvenv.anatomy.from_geometry` loads), compares C of the
 GP-predicted, the directly trained and the N record's maps on each held-out anatomy
@@ -29,7 +32,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from lvenv import plots, presets  # noqa: E402
 from lvenv.anatomy import ARTEFACT, ED_STRAIN, unload  # noqa: E402
 from lvenv.geometry import cavity_volume  # noqa: E402
-from optim import campaign, regression  # noqa: E402
+from optim import campaign, regression, unloading  # noqa: E402
 
 
 def _markdown(summary: dict, command: str) -> str:
@@ -41,6 +44,16 @@ def _markdown(summary: dict, command: str) -> str:
     if summary["throughput"]:
         lines += ["", "| session | workers | anatomies | per hour | median min per anatomy |", "|---|---|---|---|---|"]
         lines += [f"| {s['session']} | {s['workers']} | {s['anatomies']} | {s['per_hour']:.2f} | {s['median_anatomy_min']:.1f} |" for s in summary["throughput"]]
+    if summary["unloading_fe"]:
+        gp = "V0_error_gp_median_abs" in next(iter(summary["unloading_fe"].values()))
+        lines += ["", "Unloading against the FE wall (`optim.unloading`), median / largest absolute error over the accepted anatomies:", "",
+                  "| rule | EDP (kPa) | anatomies | EDV error | V0 error, rule | V0 error, trained maps | " + ("V0 error, GP maps | " if gp else "")
+                  + "strain of the FE wall at EDP |", "|---|---|---|---|---|---|---|" + ("---|" if gp else "")]
+        for group, f in summary["unloading_fe"].items():
+            pair = lambda key: f"{100 * f[key + '_median_abs']:.1f} / {100 * f[key + '_max_abs']:.1f} %"
+            lines.append(f"| {group}: strain {100 * ED_STRAIN[group]:.0f} % | {f['EDP_kPa']:.2f} | {f['anatomies']} | {pair('EDV_error')} | {pair('V0_error_rule')} | "
+                         f"{pair('V0_error_fit')} | " + (f"{pair('V0_error_gp')} | " if gp else "")
+                         + f"{100 * f['strain_fe_median']:.1f} % ({100 * f['strain_fe_min']:.1f}–{100 * f['strain_fe_max']:.1f} %) |")
     if "cv" in summary:
         lines += ["", f"Cross-validation ({summary['folds']}-fold, {summary['training_anatomies']} anatomies):", "",
                   "| output | R² | RMSE | within 2 sd |", "|---|---|---|---|"]
@@ -80,6 +93,7 @@ def main() -> None:
         "unloading_rule": _unloading_rule(),
     }
     ids, _, trained = regression.training_set(args.dataset)
+    fitted = None
     if len(ids) >= regression.MIN_ANATOMIES:
         fitted = regression.fit(args.dataset, restarts=args.restarts, folds=args.folds)
         regression.save(fitted, args.artefact)
@@ -95,6 +109,10 @@ def main() -> None:
         )]
     else:
         summary["regression"] = f"not fitted: {len(ids)} accepted training anatomies, {regression.MIN_ANATOMIES} needed"
+    edp = unloading.reference_edp()
+    rows = unloading.check(args.dataset, edp, fitted)
+    summary["unloading_fe"] = {group: {"EDP_kPa": edp[group], **figures} for group, figures in unloading.summary(rows).items()}
+    summary["unloading_fe_rows"] = rows
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "anatomy.md").write_text(_markdown(summary, "python " + " ".join(sys.argv)))
     print(json.dumps(summary, indent=2, default=float))

@@ -1,9 +1,15 @@
-"""Unloading an imaged (end-diastolic) ventricle by the paper's assumed mid-wall strain."""
+"""Unloading an imaged (end-diastolic) ventricle: by the paper's assumed mid-wall strain, and by
+the strain at which the LO passive curve reaches the imaged volume."""
+
+import dataclasses
 
 import pytest
+from scipy.optimize import brentq
 
 from lvenv import presets
-from lvenv.anatomy import ED_STRAIN, unload
+from lvenv.anatomy import ED_STRAIN, inflate, unload, unload_to_volume
+from lvenv.coupling import passive_volume
+from lvenv.trained import builtin
 from lvenv.geometry import Geometry, GeometryError, cavity_volume, wall_volume
 from lvenv.validation import InputError
 
@@ -25,3 +31,31 @@ def test_unloading_by_mid_wall_strain_keeps_the_wall_volume_and_shrinks_the_mid_
         unload(ed, -0.1)
     with pytest.raises(GeometryError, match="keeps the wall volume"):
         unload(Geometry(Rb=20.0, L=9.0, Z=30.0, H=8.0, e=0.7, C0=-60.0), 0.9)
+
+
+def test_inflation_is_the_inverse_of_unloading_and_keeps_the_wall_volume():
+    for g, strain in ((presets.N_UNLOADED, ED_STRAIN["N"]), (presets.HF_UNLOADED, ED_STRAIN["HF"]), (presets.N_UNLOADED, 0.3)):
+        ed = inflate(g, strain)
+        assert cavity_volume(ed) > cavity_volume(g) and ed.L < g.L and ed.H < g.H
+        assert wall_volume(ed) == pytest.approx(wall_volume(g), rel=1e-9)
+        back = unload(ed, strain)
+        assert back.as_tuple() == pytest.approx(g.as_tuple(), rel=1e-9)
+    assert inflate(presets.N_UNLOADED, 0.0) == presets.N_UNLOADED
+
+
+def test_unloading_to_the_imaged_volume_recovers_the_strain_the_passive_curve_implies():
+    """An imaged ventricle built as the N anatomy inflated to where the trained N maps' passive
+    curve puts it at 1.5 kPa: the search returns that strain and that unloaded shape, and the
+    fixed 10 % rule does not; a stiffer passive curve gives a smaller strain."""
+    lo, g0, edp = builtin("normal").lo, presets.N_UNLOADED, 1.5
+    target = float(passive_volume(edp, cavity_volume(g0), lo))
+    strain = brentq(lambda s: cavity_volume(inflate(g0, s)) - target, 0.0, 0.6, xtol=1e-12)
+    imaged = inflate(g0, strain)
+    unloaded, found = unload_to_volume(imaged, edp, lo=lo)
+    assert found == pytest.approx(strain, abs=1e-8) and abs(found - ED_STRAIN["N"]) > 0.01
+    assert unloaded.as_tuple() == pytest.approx(g0.as_tuple(), rel=1e-7)
+    assert float(passive_volume(edp, cavity_volume(unloaded), lo)) == pytest.approx(cavity_volume(imaged), rel=1e-8)
+    stiffer = dataclasses.replace(lo, c=2 * lo.c, b=2 * lo.b, a=2 * lo.a)
+    assert unload_to_volume(imaged, edp, lo=stiffer)[1] < found
+    with pytest.raises(InputError, match="edp"):
+        unload_to_volume(imaged, -1.0, lo=lo)
