@@ -22,7 +22,7 @@ its own step size by dual averaging (Hoffman & Gelman §3.2.1, target acceptance
 value. The fixed-step log-density is continuous but not smooth at the integrator's grid scale:
 the gradient has kinks where a valve event passes a step (:mod:`lvenv.sensitivity`), and the
 value wobbles about a smooth trend by at most 0.011 between neighbouring points 0.02 % apart at
-500 steps per beat on N (:mod:`optim.identify`). Energy errors from them lower the acceptance and
+500 steps per beat on N (:mod:`optim.identify.sampler`). Energy errors from them lower the acceptance and
 the adapted step size, and cost longer trees, but do not bias the chains: NUTS weighs the
 trajectory's states by the exact log-density. Cost and measurements: README, "Posterior".
 """

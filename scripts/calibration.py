@@ -41,6 +41,7 @@ import argparse
 import dataclasses
 import json
 import pathlib
+import sys
 import time
 
 import numpy as np
@@ -51,8 +52,11 @@ from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.patients import Patient, builtin
 from lvenv.validation import InputError
 from optim.fit import draw_truths, make_env
-from optim.identify import add_sampler_options, chi2_weighted, log_density, measurement_sd, posterior, prior_draws, sampler_options
+from optim.identify import chi2_weighted, log_density, measurement_sd, posterior, prior_draws
 from optim.minimize import minimize
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # the shared scripts/ module below
+from scripts.posterior_options import add_sampler_options, sampler_options  # noqa: E402
 
 TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
 DENSITY_SAMPLES = 512  # posterior samples whose density the truth's is ranked against

@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 import numpy as np
@@ -37,7 +38,10 @@ from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import Patient, builtin
 from lvenv.archive import load_records, save_records
 from optim.fit import draw_truths
-from optim.identify import NOISE, VOLUME_NAMES, add_sampler_options, posterior, sampler_options
+from optim.identify import NOISE, VOLUME_NAMES, posterior
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # the shared scripts/ module below
+from scripts.posterior_options import add_sampler_options, sampler_options  # noqa: E402
 
 BASE = ("EF", "ET", "IVRT", "P_ao_pulse")
 SETS = {

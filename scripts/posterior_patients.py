@@ -15,13 +15,17 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.patients import builtin
 from lvenv.plots import pairs_figure
-from optim.identify import add_sampler_options, posterior, probability_lower, sampler_options
+from optim.identify import posterior, probability_lower
 from optim.lm import fit_lm
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # the shared scripts/ module below
+from scripts.posterior_options import add_sampler_options, sampler_options  # noqa: E402
 
 PATIENTS = ("normal", "heart_failure")
 

@@ -29,7 +29,7 @@ def test_null_directions_change_no_target_and_four_targets_leave_two_of_them():
 def test_profile_interval_spans_every_point_below_the_threshold():
     """A constrained fit can only stall above the true profile, so a high point between two low
     ones does not end the interval; NaN (failed) points are skipped."""
-    from optim.identify import _interval
+    from optim.identify.profiles import _interval
 
     grid = np.arange(7.0)
     assert _interval(grid, np.array([110, 72, 19, 0, 37, 6, 3.0]), 3.84) == (2.0, None)
@@ -125,7 +125,7 @@ def test_posterior_samples_stay_in_bounds_count_their_evaluations_and_follow_the
 
 
 def test_pilot_is_extended_while_its_walkers_still_climb():
-    from optim.identify import CLIMB, _climbing
+    from optim.identify.sampler import CLIMB, _climbing
 
     rng = np.random.default_rng(0)
     noise = rng.normal(0.0, 3.0, (200, 64))  # an equilibrium's spread of log-posteriors, far wider than CLIMB
@@ -159,7 +159,7 @@ def test_independent_chains_sample_a_known_ridge_even_from_a_wrong_pilot():
     too narrow Gaussian instead of the curved ridge. Quantiles against direct draws of the ridge."""
     import emcee
 
-    from optim.identify import _chain_moves, _split_rhat
+    from optim.identify.sampler import _chain_moves, _split_rhat
 
     rng = np.random.default_rng(0)
     truth = _ridge_draws(200_000, rng)
@@ -190,7 +190,7 @@ def test_independent_chains_sample_a_known_ridge_even_from_a_wrong_pilot():
 def test_mixture_proposal_density_matches_its_draws():
     """The proposal's density on the unit cube (logit change of variables included) against a
     histogram of its own draws, in 1-D, where a missing Jacobian would be off by a factor u (1 − u)."""
-    from optim.identify import _Mixture
+    from optim.identify.sampler import _Mixture
 
     rng = np.random.default_rng(1)
     mix = _Mixture.fit(np.clip(rng.beta(2.0, 5.0, (4000, 1)), 1e-6, 1 - 1e-6), seed=0)
@@ -262,7 +262,8 @@ def test_prior_draws_are_the_posteriors_prior_and_carry_their_own_observations()
     from lvenv.identification import DEFAULT_ACTION_PARAMS
     from lvenv.plausibility import resolve
     from optim.fit import make_env
-    from optim.identify import _evaluate, log_density, measurement_sd, prior_draws
+    from optim.identify import log_density, measurement_sd, prior_draws
+    from optim.identify.density import _evaluate
 
     patient = builtin("normal")
     x, obs = prior_draws(12, patient, seed=4, batch=16, steps_per_beat=STEPS, max_beats=30)
@@ -288,10 +289,10 @@ def test_prior_draws_are_the_posteriors_prior_and_carry_their_own_observations()
 
 
 def test_prior_draws_give_up_with_the_bands_named_when_no_heart_is_plausible(monkeypatch):
-    import optim.identify
+    import optim.identify.density
     from lvenv.plausibility import Band
 
-    monkeypatch.setattr(optim.identify, "PRIOR_TRIES", 1)
+    monkeypatch.setattr(optim.identify.density, "PRIOR_TRIES", 1)
     impossible = (Band.mmhg("P_ao_mean", 400.0, 410.0, 80.0),)
     with pytest.raises(RuntimeError, match="P_ao_mean 400–410 mmHg"):
         optim.identify.prior_draws(1, builtin("normal"), batch=16, steps_per_beat=STEPS, max_beats=30, plausibility=impossible)

@@ -1,0 +1,35 @@
+"""What a patient's measurements pin down: the measurement model, the sensitivity at a fit,
+profile likelihoods and the posterior (DESIGN §6).
+
+One module per job; every public name is re-exported here, so ``from optim import identify``
+then ``identify.posterior(patient)`` is the usual entry point:
+
+* :mod:`optim.identify.noise`: the measurement model, each target's error σ_k (:data:`NOISE`,
+  :class:`Relative`, with their published sources) and the misfit χ² (:func:`chi2`,
+  :func:`chi2_weighted`);
+* :mod:`optim.identify.sensitivities`: the noise-scaled sensitivity at a parameter set, its
+  singular values and null directions (:func:`sensitivity`);
+* :mod:`optim.identify.profiles`: profile likelihoods through constrained cohort fits, and each
+  parameter's class (:func:`profile`);
+* :mod:`optim.identify.density`: the posterior's prior and density through the vector env, and
+  exact prior draws for calibration (:func:`log_density`, :func:`prior_sample`, :func:`prior_draws`);
+* :mod:`optim.identify.sampler`: the posterior's samples, by ensemble pilot and independent
+  chains or NUTS (:func:`posterior`), or by the amortised flow of :mod:`optim.amortised`
+  (:func:`amortised`), and their comparison (:func:`probability_lower`);
+* :mod:`optim.identify.report`: all of it at a fit, as a per-patient report (:func:`write_report`).
+
+The scripts' sampler options live with the scripts (``scripts/posterior_options.py``).
+"""
+
+from optim.identify.density import PLAUSIBILITY_SD, PriorSample, log_density, prior_draws, prior_sample
+from optim.identify.noise import NOISE, VOLUME_NAMES, Relative, chi2, chi2_weighted, measurement_sd
+from optim.identify.profiles import DELTA_95, FLAT, Profiles, profile
+from optim.identify.report import write_report
+from optim.identify.sampler import SAMPLERS, Posterior, amortised, posterior, probability_lower
+from optim.identify.sensitivities import Sensitivity, sensitivity
+
+__all__ = [
+    "NOISE", "Relative", "VOLUME_NAMES", "measurement_sd", "chi2_weighted", "chi2", "PLAUSIBILITY_SD", "DELTA_95", "FLAT",
+    "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior", "probability_lower", "prior_draws",
+    "prior_sample", "PriorSample", "amortised", "log_density", "write_report", "SAMPLERS",
+]
