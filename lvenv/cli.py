@@ -27,6 +27,17 @@ recompile the model.
 
 The CLI is the application layer: it may import :mod:`optim` (``reach``, ``fit``, ``cohort``);
 the rest of :mod:`lvenv` never does.
+
+Why the imports of :mod:`optim` and :mod:`fe_oracle` sit inside the commands: :mod:`lvenv` is
+the ground floor that :mod:`optim` and :mod:`fe_oracle` build on, so a module-level import here
+would make the package import its own users (a cycle through ``lvenv.cli``), and every
+``lvenv --help`` or ``lvenv simulate`` would pay for loading the optimisers, flowjax and the FE
+backend it never uses. The lazy import in each command is the seam: the dependency points
+upwards only where the application needs it, at call time.
+
+Length: over 600 lines because it is one Click application whose commands share the option
+checks, tables, exit codes and progress display above; each command is a thin shell over
+:mod:`optim` or :mod:`fe_oracle`.
 """
 
 from __future__ import annotations
@@ -302,6 +313,54 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
     return table
 
 
+def _posterior_options(command):
+    """``--posterior``, ``--samples`` and ``--refine`` of ``fit`` and ``cohort``."""
+    command = click.option("--refine", is_flag=True,
+                           help="for patients flagged out of distribution (or not covered by the estimator), run the MCMC posterior "
+                                "(optim.identify.posterior, minutes each) instead, started from the amortised median (the sampler "
+                                "takes one start point, not the samples); needs --posterior amortised")(command)
+    command = click.option("--samples", "n_samples", type=click.IntRange(min=8), default=None,
+                           help="posterior draws per patient [default: 1000]; needs --posterior amortised")(command)
+    return click.option("--posterior", type=click.Choice(("amortised",)), default=None,
+                        help="also the posterior of every fitted parameter: median and 90 % interval from the shipped amortised "
+                             "estimator (optim.amortised), with its out-of-distribution flag")(command)
+
+
+def _check_posterior_options(posterior, n_samples, refine) -> int:
+    """A usage error naming the option for --samples or --refine without --posterior; the draws per patient."""
+    for given, option in ((n_samples is not None, "--samples"), (refine, "--refine")):
+        if given and posterior is None:
+            raise click.UsageError(f"{option} applies to a posterior: give --posterior amortised with it")
+    return 1000 if n_samples is None else n_samples
+
+
+def _refining(done: int, total: int, name: str) -> None:
+    """Progress of --refine on stderr (on a terminal): one line per MCMC posterior."""
+    if _err.is_terminal:
+        _err.print(f"refining {name} by MCMC ({done + 1} of {total}; about 100 s each on 2 cores)", markup=False)
+
+
+def _posterior_payload(identified) -> dict:
+    """JSON of one :class:`optim.amortised.Identified` (internal units)."""
+    post = identified.posterior
+    return {"sampler": None if post is None else post.sampler, "refined": identified.refined, "out_of_distribution": bool(identified.flag),
+            "reason": identified.flag, "median": None if post is None else post.median, "interval_90": None if post is None else post.interval_90}
+
+
+def _posterior_table(identified) -> Table:
+    post = identified.posterior
+    what = "no posterior" if post is None else f"MCMC ({post.sampler}), refined" if identified.refined else "amortised"
+    flag = f"; FLAGGED: {identified.flag}" if identified.flag else ""
+    table = Table(title=f"posterior of {identified.patient}: {what}{flag}", title_justify="left")
+    for col in ("parameter", "median", "5 %", "95 %", "units"):
+        table.add_column(col)
+    if post is not None:
+        for name, median in post.median.items():
+            lo, hi = post.interval_90[name]
+            table.add_row(name, f"{median:.4g}", f"{lo:.4g}", f"{hi:.4g}", ACTION_BOUNDS[name].units)
+    return table
+
+
 @app.command("fit", epilog=_EPILOG)
 @click.argument("patient")
 @click.option("--method", type=click.Choice(("mads", "cma", "kriging", "lm")), default="mads", show_default=True,
@@ -323,13 +382,15 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
 @click.option("--convergence", "convergence_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
               help="write the best mismatch against evaluations (.png or .pdf)")
+@_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
 def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, plausibility, identifiability, report_dir, fidelity, fidelity_mesh,
-                plot_path, convergence_path, as_json) -> int:
+                plot_path, convergence_path, posterior, n_samples, refine, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets."""
     from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
     from optim.minimize import minimize
 
+    n_samples = _check_posterior_options(posterior, n_samples, refine)
     record = _patient_arg(patient)
     if method == "lm":
         from optim.lm import fit_lm
@@ -372,6 +433,12 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         with _working("profiles and posterior for the identifiability report"):
             _save(unsaved, "--report", report_dir, lambda: payload.update(report=str(write_report(
                 record, res.parameters, res.observation, report_dir, options=options, posterior_options={"plausibility": plausibility, "seed": seed}))))
+    if posterior is not None:
+        from optim.amortised import identify_patients
+
+        with _working("amortised posterior"):
+            identified = identify_patients([record], n_samples, seed=seed, refine=refine, mcmc_options={"plausibility": plausibility}, progress=_refining)[0]
+        payload["posterior"] = _posterior_payload(identified)
     if fidelity and ok:
         try:
             from optim.congruency import check_fidelity
@@ -403,6 +470,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         out.print("singular values of the noise-scaled sensitivity (optim.identify; χ per unit-cube step): " + ", ".join(f"{v:.3g}" for v in ident["singular_values"]))
         for j, direction in enumerate(ident["null_directions"]):
             out.print(f"null direction {j + 1} (targets unchanged to first order): " + ", ".join(f"{n} {v:+.2f}" for n, v in direction.items()))
+    if posterior is not None:
+        out.print(_posterior_table(identified))
     if "report" in payload:
         out.print(f"identifiability report: {payload['report']}")
     if "fidelity" in payload:
@@ -423,14 +492,19 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 @click.option("--seed", type=click.IntRange(min=0), default=None)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Dask LocalCluster processes (1: this process only)")
 @click.option("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (e.g. tcp://host:8786) to split the cohort over")
+@_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
-def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, as_json) -> int:
+def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, posterior, n_samples, refine, as_json) -> int:
     """Fit every echo report of the CSV REPORTS (columns: id, EF_pct, ET_ms, IVRT_ms, SBP_mmHg,
-    DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out."""
-    from optim.cohort import CohortOptions, run_cohort
+    DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out. With
+    --posterior amortised each row also gets every parameter's posterior median and 90 % interval
+    (<column>_post_median, _post_q05, _post_q95) and its flag (post_ood, post_ood_reason)."""
+    from optim.cohort import CohortOptions, PosteriorOptions, run_cohort
 
+    n_samples = _check_posterior_options(posterior, n_samples, refine)
     given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed}
     options = CohortOptions(**{k: v for k, v in given.items() if v is not None})
+    posterior_options = None if posterior is None else PosteriorOptions(n_samples, refine, options.seed, {"plausibility": options.plausibility})
 
     def report_bad(bad) -> None:
         _err.print(f"{reports}: line {bad.line}{f' (id {bad.id})' if bad.id else ''}: {bad.reason}; skipped", markup=False, soft_wrap=True)
@@ -450,7 +524,10 @@ def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, 
     if bar is not None:
         bar.start()
     try:
-        summary = run_cohort(reports, out_path, options, workers=workers, scheduler=scheduler, progress=progress, on_bad=report_bad)
+        if posterior_options is not None and _err.is_terminal:
+            _err.print("drawing the amortised posteriors of every row before the fits", markup=False)
+        summary = run_cohort(reports, out_path, options, workers=workers, scheduler=scheduler, progress=progress, on_bad=report_bad,
+                             posterior=posterior_options, posterior_progress=_refining)
     finally:
         if bar is not None:
             bar.stop()
@@ -466,6 +543,8 @@ def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, 
     table.add_row(str(summary["fitted"]), str(summary["resumed"]), str(len(summary["bad_rows"])),
                   ", ".join(f"{k} {v}" for k, v in summary["status"].items()), pct("median"), pct("p95"), pct("max"), f"{summary['wall_time_s']:.1f}")
     _out().print(table)
+    if "posterior" in summary:
+        _out().print(f"posteriors: {summary['posterior']['flagged']} row(s) flagged (post_ood), {summary['posterior']['refined']} refined by MCMC")
     return EXIT_FAILED if failed else EXIT_OK
 
 

@@ -52,6 +52,21 @@ the model's values at the fit (``fit_<column>``), the unmeasured filling pressur
 ``fit_EDP_mmHg`` and ``fit_P_at_mean_mmHg`` (kept within 4–25 mmHg by the objective's
 plausibility bands unless ``CohortOptions.plausibility`` is False), ``evaluations``, ``stop``, ``status`` and the
 input ``line``. Rows are written as patients finish; failed values are empty cells, never zeros.
+
+Posterior (``posterior=PosteriorOptions()``, ``lvenv cohort --posterior amortised``): before the
+fits, every pending row's amortised posterior (:func:`optim.amortised.identify_patients`, one
+batched pass) adds, per fitted parameter, ``<column>_post_median``, ``<column>_post_q05`` and
+``<column>_post_q95`` (``<column>`` its fitted column, e.g. ``tau2_s_post_median``: the median
+and the 90 % equal-tailed interval, internal units), then ``post_sampler`` (``amortised``, or
+the MCMC sampler of a refined row), ``post_refined`` (1 or 0), ``post_ood`` (1 if the amortised
+answer is flagged: outside the training distribution, or a row the estimator does not cover, e.g.
+one with EDV_ml or a geometry) and ``post_ood_reason``. With ``refine`` the flagged rows get the
+MCMC posterior (:func:`optim.identify.posterior`, minutes each) instead. A row's draws depend
+on the seed and on the batch it was drawn in, so a resumed run draws its remaining rows afresh.
+
+Length: over 600 lines because reading reports, the vectorised cohort fit and the resumable
+output are one pipeline around one row format (:func:`output_columns`); splitting them would
+spread that format over modules.
 """
 
 from __future__ import annotations
@@ -92,7 +107,7 @@ from optim.minimize import unit_bounds
 __all__ = [
     "FORM_FACTOR", "REQUIRED", "TARGETS", "GEOMETRY_COLUMNS", "CohortOptions", "Report", "BadRow",
     "Reports", "read_reports", "cuff_targets", "cuff_from_central", "parameter_column", "output_columns",
-    "fit_reports", "run_cohort", "summarise", "distribution", "patient_seed", "CohortError",
+    "fit_reports", "run_cohort", "summarise", "distribution", "patient_seed", "CohortError", "PosteriorOptions", "posterior_columns",
 ]
 
 #: Fraction of the pulse pressure above DBP at which the mean pressure lies (Meaney et al. 2000).
@@ -299,7 +314,7 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Rep
             raise CohortError(f"{str(path)!r} repeats a column name: {columns}")
         reader.fieldnames = columns
         extra_columns = [c for c in columns if c not in _KNOWN]
-        if clash := sorted(set(extra_columns) & set(output_columns(()))):
+        if clash := sorted(set(extra_columns) & set(output_columns((), posterior=True))):
             raise CohortError(f"{str(path)!r} has the column(s) {clash}, which the output writes itself; rename them")
         rows, bad, seen = [], [], {}
         for row in _rows_of(reader, path, bad):
@@ -531,13 +546,57 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
 _FILLING = tuple(b.metric for b in FILLING)
 
 
-def output_columns(extra_columns: Sequence[str]) -> list[str]:
-    """The output CSV's columns for a report file with these carried-through columns."""
+def output_columns(extra_columns: Sequence[str], posterior: bool = False) -> list[str]:
+    """The output CSV's columns for a report file with these carried-through columns, with the
+    posterior's (:func:`posterior_columns`) before ``line`` if ``posterior``."""
     return [
         "id", *extra_columns, *(parameter_column(n) for n in DEFAULT_ACTION_PARAMS), "mismatch",
         *(f"mismatch_{t.label}" for t in TARGETS), *(f"fit_{t.column}" for t in TARGETS), "fit_SBP_central_mmHg",
-        *(f"fit_{m}_mmHg" for m in _FILLING), "evaluations", "stop", "status", "line",
+        *(f"fit_{m}_mmHg" for m in _FILLING), "evaluations", "stop", "status", *(posterior_columns() if posterior else ()), "line",
     ]
+
+
+#: Suffixes of a parameter's posterior columns: its median and its 90 % interval's ends (5 % and 95 % quantiles).
+_POSTERIOR_STATS = ("post_median", "post_q05", "post_q95")
+
+
+def posterior_columns() -> list[str]:
+    """The posterior's output columns (module docstring)."""
+    return [*(f"{parameter_column(n)}_{stat}" for n in DEFAULT_ACTION_PARAMS for stat in _POSTERIOR_STATS),
+            "post_sampler", "post_refined", "post_ood", "post_ood_reason"]
+
+
+@dataclasses.dataclass(frozen=True)
+class PosteriorOptions:
+    """The posterior beside each fit (module docstring): ``n_samples`` draws per row, and with
+    ``refine`` the MCMC posterior (:func:`optim.identify.posterior` with ``mcmc`` as keywords)
+    for the flagged rows."""
+
+    n_samples: int = 1000
+    refine: bool = False
+    seed: int = 0
+    mcmc: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        integer("n_samples", self.n_samples, 8)
+        if not isinstance(self.refine, bool):
+            raise InputError(f"refine = {self.refine!r} must be True or False")
+        integer("seed", self.seed, 0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**dataclasses.asdict(self), "mcmc": dict(self.mcmc)}
+
+
+def _posterior_cells(identified: Any) -> dict[str, str]:
+    """The posterior columns of one row from its :class:`optim.amortised.Identified`."""
+    post = identified.posterior
+    row = {}
+    for n in DEFAULT_ACTION_PARAMS:
+        values = (math.nan,) * 3 if post is None else (post.median[n], *post.interval_90[n])
+        row.update({f"{parameter_column(n)}_{stat}": _cell(v) for stat, v in zip(_POSTERIOR_STATS, values)})
+    row.update(post_sampler="" if post is None else post.sampler, post_refined=str(int(identified.refined)), post_ood=str(int(bool(identified.flag))),
+               post_ood_reason=identified.flag)
+    return row
 
 
 
@@ -570,9 +629,9 @@ def _fit_chunk(reports: list[Report], options: CohortOptions) -> list[dict[str, 
     return fit_reports(reports, options)
 
 
-def _meta(reports_path: Path, options: CohortOptions) -> dict[str, Any]:
+def _meta(reports_path: Path, options: CohortOptions, posterior: PosteriorOptions | None) -> dict[str, Any]:
     digest = hashlib.sha256(reports_path.read_bytes()).hexdigest()
-    return {"reports_sha256": digest, "options": options.to_dict()}
+    return {"reports_sha256": digest, "options": options.to_dict(), **({} if posterior is None else {"posterior": posterior.to_dict()})}
 
 
 #: How the output CSV is written: the csv module's quoting for every header and cell, one line ending.
@@ -622,6 +681,8 @@ def run_cohort(
     scheduler: str | None = None,
     progress: Callable[[int, int, dict[str, Any] | None], None] | None = None,
     on_bad: Callable[[BadRow], None] | None = None,
+    posterior: PosteriorOptions | None = None,
+    posterior_progress: Callable[[int, int, str], None] | None = None,
 ) -> dict[str, Any]:
     """Fit a report CSV into ``out_path`` (module docstring); resumable.
 
@@ -632,9 +693,12 @@ def run_cohort(
     Dask ``LocalCluster`` of that many single-threaded processes), the remaining reports are cut
     into chunks of ``slots`` patients fitted by the workers; the fits are the same.
     ``progress(done, total, result)`` is called at the start (result None) and per patient;
-    ``on_bad(row)`` once per bad row, before any fitting.
+    ``on_bad(row)`` once per bad row, before any fitting. ``posterior``: also each row's
+    posterior (module docstring), drawn before the fits; ``posterior_progress(done, total, id)``
+    before each refining MCMC run.
 
-    Returns a summary: counts, bad rows, wall time, and the mismatch distribution of this file.
+    Returns a summary: counts, bad rows, wall time, the mismatch distribution of this file and,
+    with ``posterior``, how many of this run's rows were flagged and refined.
     """
     options = options or CohortOptions()
     workers = integer("workers", workers, 1)
@@ -644,9 +708,9 @@ def run_cohort(
     if on_bad is not None:
         for bad in parsed.bad:
             on_bad(bad)
-    columns = output_columns(parsed.extra_columns)
+    columns = output_columns(parsed.extra_columns, posterior is not None)
     meta_path = out.with_name(out.name + ".json")
-    meta = _meta(reports_path, options)
+    meta = _meta(reports_path, options, posterior)
     done: set[str] = set()
     try:
         if out.exists() and out.stat().st_size:
@@ -660,6 +724,13 @@ def run_cohort(
     except (OSError, UnicodeDecodeError) as err:
         raise CohortError(f"cannot write the output {str(out)!r} (or {str(meta_path)!r}): {getattr(err, 'strerror', None) or err}") from None
     pending = [r for r in parsed.rows if r.id not in done]
+    identified = {}
+    if posterior is not None and pending:
+        from optim.amortised import identify_patients
+
+        answers = identify_patients([r.patient for r in pending], posterior.n_samples, seed=posterior.seed, refine=posterior.refine,
+                                    mcmc_options=posterior.mcmc, progress=posterior_progress)
+        identified = {r.id: a for r, a in zip(pending, answers)}
     total = len(parsed.rows)
     count = total - len(pending)
     if progress is not None:
@@ -669,7 +740,7 @@ def run_cohort(
 
         def write(result: dict[str, Any]) -> None:
             nonlocal count
-            writer.writerow(_row(result))
+            writer.writerow({**_row(result), **(_posterior_cells(identified[result["id"]]) if identified else {})})
             handle.flush()
             os.fsync(handle.fileno())
             count += 1
@@ -680,8 +751,9 @@ def run_cohort(
             fit_reports(pending, options, on_done=write)
         else:
             _distributed(pending, options, write, workers, scheduler)
+    flagged = {"posterior": {"flagged": sum(bool(a.flag) for a in identified.values()), "refined": sum(a.refined for a in identified.values())}}
     return {**summarise(out), "bad_rows": [dataclasses.asdict(b) for b in parsed.bad], "resumed": len(done),
-            "wall_time_s": time.perf_counter() - start, "output": str(out)}
+            "wall_time_s": time.perf_counter() - start, "output": str(out), **(flagged if posterior is not None else {})}
 
 
 def _distributed(pending: list[Report], options: CohortOptions, write: Callable[[dict[str, Any]], None],

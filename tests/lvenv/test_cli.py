@@ -5,6 +5,7 @@ import json
 import pytest
 
 from lvenv import cli
+from lvenv.identification import ACTION_BOUNDS
 
 
 def test_presets_command_prints_both_tables(capsys):
@@ -35,6 +36,9 @@ def test_help_of_every_command_works(argv, capsys):
         (["simulate", "--patient", "/no/such/file.json"], "file.json"),
         (["simulate", "--steps-per-beat", "5"], "5"),
         (["frobnicate"], "frobnicate"),
+        (["fit", "normal", "--refine"], "--refine applies to a posterior: give --posterior amortised"),
+        (["fit", "normal", "--samples", "100"], "--samples applies to a posterior"),
+        (["fit", "normal", "--posterior", "mcmc"], "'mcmc' is not 'amortised'"),
     ],
 )
 def test_usage_errors_exit_2_and_name_the_problem(argv, message, capsys):
@@ -90,7 +94,7 @@ def test_long_commands_show_progress_on_a_terminal(monkeypatch, capsys):
 def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_fit(tmp_path, capsys):
     plot, convergence = tmp_path / "fit.png", tmp_path / "convergence.pdf"
     argv = ["fit", "normal", "--method", "cma", "--budget", "16", "--num-envs", "8", "--steps-per-beat", "250", "--plot", str(plot),
-            "--convergence", str(convergence), "--identifiability", "--json"]
+            "--convergence", str(convergence), "--identifiability", "--posterior", "amortised", "--samples", "200", "--json"]
     assert cli.main(argv) == cli.EXIT_OK
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and convergence.read_bytes()[:5] == b"%PDF-"
     payload = json.loads(capsys.readouterr().out)
@@ -104,6 +108,11 @@ def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_f
         assert check["value"] == pytest.approx(7.50062 * payload["observation"][name]), "mmHg"
     ident = payload["identifiability"]
     assert len(ident["singular_values"]) == 4 and len(ident["null_directions"]) == 2, "4 targets, 6 parameters"
+    post = payload["posterior"]
+    assert post["sampler"] == "amortised" and not post["refined"] and not post["out_of_distribution"] and post["reason"] == ""
+    for name, median in post["median"].items():
+        lo, hi = post["interval_90"][name]
+        assert ACTION_BOUNDS[name].lo <= lo < median < hi <= ACTION_BOUNDS[name].hi, name
     assert cli.main(["fit", "nobody"]) == cli.EXIT_USAGE
     assert "nobody" in capsys.readouterr().err
 
@@ -131,6 +140,40 @@ def test_cohort_command_skips_bad_rows_naming_their_lines_and_fits_the_rest(tmp_
     assert f"--out {fits}" in report and "| 1 | ok 1 |" in report, "the cohort's summary with its command"
     assert "Not run yet. Command: `make run`" in report and "Not run yet. Command: `lvenv bench lo" in report
     assert (tmp_path / "out" / "report" / "cohort_fits.png").stat().st_size > 0
+
+
+def test_cohort_posterior_adds_medians_intervals_and_flags_per_row(tmp_path, capsys):
+    """--posterior amortised: every parameter's median inside its 90 % interval inside its bound;
+    a row far from every simulated heart is flagged with the density reason, a row with a target
+    the estimator does not take (EDV) is flagged with that reason and has empty cells."""
+    import csv
+
+    from optim.cohort import parameter_column
+
+    reports = tmp_path / "reports.csv"
+    reports.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg,HR_bpm,EDV_ml\n"
+                       "A,58,290,85,124,78,64,\nB,55,300,90,120,80,70,130\nC,15,120,250,220,40,64,\n")
+    fits = tmp_path / "fits.csv"
+    argv = ["cohort", str(reports), "--out", str(fits), "--budget", "8", "--candidates", "8", "--posterior", "amortised", "--samples", "400"]
+    assert cli.main(argv + ["--json"]) == cli.EXIT_OK
+    assert json.loads(capsys.readouterr().out)["posterior"] == {"flagged": 2, "refined": 0}
+    rows = {r["id"]: r for r in csv.DictReader(fits.open())}
+    header = fits.read_text().splitlines()[0].split(",")
+    assert header[-5:] == ["post_sampler", "post_refined", "post_ood", "post_ood_reason", "line"]
+    assert header.index("tau2_s_post_median") + 1 == header.index("tau2_s_post_q05") and "Cat_ml_per_kPa_post_q95" in header
+    for rid in "AC":
+        assert rows[rid]["post_sampler"] == "amortised" and rows[rid]["post_refined"] == "0"
+        for name, bound in ACTION_BOUNDS.items():
+            column = parameter_column(name)
+            lo, median, hi = (float(rows[rid][f"{column}_post_{s}"]) for s in ("q05", "median", "q95"))
+            assert bound.lo <= lo < median < hi <= bound.hi, (rid, name)
+    assert (rows["A"]["post_ood"], rows["A"]["post_ood_reason"]) == ("0", "")
+    assert rows["C"]["post_ood"] == "1" and "log density" in rows["C"]["post_ood_reason"]
+    assert rows["B"]["post_ood"] == "1" and "['EDV']" in rows["B"]["post_ood_reason"] and rows["B"]["post_sampler"] == ""
+    assert rows["B"]["tau2_s_post_median"] == rows["B"]["Sa_post_q95"] == ""
+    assert float(rows["C"]["tau2_s_post_q95"]) < float(rows["A"]["tau2_s_post_q05"]), "the rows' own posteriors, not one shared"
+    assert cli.main(argv[:-1] + ["800"]) == cli.EXIT_USAGE, "a resumed output of other posterior options is refused"
+    assert "other options" in capsys.readouterr().err
 
 
 def test_the_persistent_jit_cache_stores_compiled_programs_unless_turned_off(tmp_path):
