@@ -32,13 +32,14 @@ import lvenv
 from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS
+from lvenv.params import Heart
 from lvenv.patients import Patient, builtin
 from lvenv.plausibility import Band, inside_bands
 from optim.minimize import MinimizeResult, minimize
 
 __all__ = [
     "FitRow", "DEFAULT_OPTIONS", "make_env", "warm_up", "fit_patients", "plot_fits", "null_directions",
-    "synthetic_recovery", "RecoveryReport", "draw_truths",
+    "synthetic_recovery", "RecoveryReport", "draw_truths", "Truths", "ENV_SIMULATION",
 ]
 
 #: Per-method options used by `fit_patients` unless overridden (see `optim.minimize`).
@@ -254,23 +255,62 @@ class RecoveryReport:
     wall_time: float
 
 
-def draw_truths(n_sets: int, rng: np.random.Generator, base: Patient, targets: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
-    """Random parameter sets (log-uniform on log axes) whose hearts simulate cleanly with EF in
-    [0.3, 0.75] and every plausibility band met (:mod:`lvenv.plausibility`, so an exact fit exists),
-    simulated with the env's scheme (adaptive, Anderson-accelerated) that will fit them."""
+@dataclasses.dataclass(frozen=True)
+class Truths:
+    """Synthetic ground truths (:func:`draw_truths`): ``parameters`` (n, 6), physical units,
+    columns :data:`~lvenv.identification.DEFAULT_ACTION_PARAMS`; ``heart_rate`` (n,), 1/min;
+    ``metrics``: every beat metric of each truth's steady state by name, (n,) each, internal
+    units; ``tried``: how many parameter sets were simulated to find them."""
+
+    parameters: np.ndarray
+    heart_rate: np.ndarray
+    metrics: dict[str, np.ndarray]
+    tried: int
+
+    def observations(self, names: Sequence[str]) -> np.ndarray:
+        """(n, len(names)) metrics of the truths, columns ``names`` (internal units)."""
+        return np.stack([self.metrics[k] for k in names], axis=1)
+
+
+#: :func:`draw_truths`' default simulation: the env's scheme (adaptive, Anderson-accelerated), which will fit them.
+ENV_SIMULATION = {"scheme": ENV_SCHEME, "acceleration": ENV_ACCELERATION, "max_beats": 60}
+
+
+def draw_truths(
+    n: int,
+    rng: np.random.Generator,
+    heart: Heart,
+    *,
+    ef: tuple[float, float] = (0.3, 0.75),
+    heart_rate: tuple[float, float] | None = None,
+    batch: int = 64,
+    simulation: Mapping[str, Any] = ENV_SIMULATION,
+) -> Truths:
+    """``n`` random parameter sets of ``heart``, uniform in the unit cube of the identification
+    bounds (log-uniform on log axes), whose hearts simulate cleanly (status ``ok``) with EF in
+    ``ef`` and every plausibility band met (:mod:`lvenv.plausibility`), so that an exact fit
+    exists. Drawn ``batch`` at a time from ``rng`` (for each batch the unit-cube points, then,
+    with ``heart_rate`` = (low, high) 1/min, a heart rate uniform in it; otherwise ``heart``'s
+    own), each batch one :func:`lvenv.simulate` call with the keywords ``simulation``; the first
+    acceptable sets in draw order are kept. One home of the synthetic truths of
+    :func:`synthetic_recovery`, the identification scripts and ``scripts/make_cohort.py``."""
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
-    truths, obs = [], []
-    while len(truths) < n_sets:
-        x = space.from_unit(rng.random((64, space.dimension)))
-        sim = lvenv.simulate([base.heart.replace(**dict(zip(space.names, map(float, xi)))) for xi in x],
-                             scheme=ENV_SCHEME, acceleration=ENV_ACCELERATION, max_beats=60, traces=False)
+    kept: dict[str, list] = {"x": [], "hr": [], "metrics": []}
+    tried = 0
+    while len(kept["x"]) < n:
+        x = space.from_unit(rng.random((batch, space.dimension)))
+        rate = {"HR": rng.uniform(*heart_rate, batch)} if heart_rate is not None else {}
+        hearts = [heart.replace(**{k: float(v[i]) for k, v in rate.items()}, **dict(zip(space.names, map(float, xi)))) for i, xi in enumerate(x)]
+        sim = lvenv.simulate(hearts, traces=False, **simulation)
         m = sim.metrics
-        good = np.asarray(sim.status) == "ok"
-        good &= (m["EF"] > 0.3) & (m["EF"] < 0.75) & inside_bands(m)
-        for i in np.flatnonzero(good)[: n_sets - len(truths)]:
-            truths.append(x[i])
-            obs.append([float(m[t][i]) for t in targets])
-    return np.array(truths), np.array(obs)
+        good = (np.asarray(sim.status) == "ok") & (m["EF"] >= ef[0]) & (m["EF"] <= ef[1]) & inside_bands(m)
+        chosen = np.flatnonzero(good)[: n - len(kept["x"])]
+        kept["x"].extend(x[chosen])
+        kept["hr"].extend(rate["HR"][chosen] if rate else np.full(len(chosen), float(heart.get("HR"))))
+        kept["metrics"].append({k: np.asarray(v)[chosen] for k, v in m.items()})
+        tried += batch
+    metrics = {k: np.concatenate([part[k] for part in kept["metrics"]]) for k in kept["metrics"][0]}
+    return Truths(np.array(kept["x"]), np.array(kept["hr"]), metrics, tried)
 
 
 def synthetic_recovery(
@@ -294,7 +334,8 @@ def synthetic_recovery(
     start = time.perf_counter()
     base_patient = _patient(base)
     rng = np.random.default_rng(seed)
-    truths, obs = draw_truths(n_sets, rng, base_patient, targets)
+    drawn = draw_truths(n_sets, rng, base_patient.heart)
+    truths, obs = drawn.parameters, drawn.observations(targets)
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
     fits, mismatch, max_error = [], [], []
     opts = {**DEFAULT_OPTIONS.get(method, {}), **options}

@@ -75,8 +75,11 @@ def main() -> None:
     base = builtin("normal")
     ordered = dataclasses.replace(base, targets={k: base.targets[k] for k in TARGETS})  # observation columns in TARGETS order
     candidates = SPARE * a.truths
-    truths, obs = (prior_draws(candidates, ordered, seed=a.seed) if a.draw == "prior"
-                   else draw_truths(candidates, np.random.default_rng(a.seed), base, TARGETS))
+    if a.draw == "prior":
+        truths, obs = prior_draws(candidates, ordered, seed=a.seed)
+    else:
+        drawn = draw_truths(candidates, np.random.default_rng(a.seed), base.heart)
+        truths, obs = drawn.parameters, drawn.observations(TARGETS)
     checkpoint = pathlib.Path(a.out + ".ckpt.npz")
     settings = {k: v for k, v in vars(a).items() if k != "out"}
     runs = load_records(checkpoint, settings)

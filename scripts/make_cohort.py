@@ -29,43 +29,31 @@ from pathlib import Path
 
 import numpy as np
 
-import lvenv
 from lvenv import presets
-from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
-from lvenv.plausibility import inside_bands
+from lvenv.identification import DEFAULT_ACTION_PARAMS
 from optim.cohort import REQUIRED, cuff_from_central, parameter_column
+from optim.fit import draw_truths
 
 BAD_KINDS = ("missing", "text", "ef_over_100", "negative_duration", "dbp_above_sbp", "repeated_id", "heart_rate", "short_row")
 
 
 def draw(n: int, seed: int, batch: int = 256) -> tuple[list[dict[str, object]], float]:
-    """``n`` report rows and the acceptance rate of the draws (module docstring)."""
-    rng = np.random.default_rng(seed)
-    space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
-    base = presets.normal()
+    """``n`` report rows and the acceptance rate of the draws (module docstring; the truths are
+    :func:`optim.fit.draw_truths`')."""
+    truths = draw_truths(n, np.random.default_rng(seed), presets.normal(), ef=(0.2, 0.8), heart_rate=(50.0, 100.0), batch=batch,
+                         simulation={"steps_per_beat": 1000, "max_beats": 200})
+    m = truths.metrics
     rows: list[dict[str, object]] = []
-    tried = 0
-    while len(rows) < n:
-        x = space.from_unit(rng.random((batch, space.dimension)))
-        hr = rng.uniform(50.0, 100.0, batch)
-        hearts = [base.replace(HR=float(h), **dict(zip(space.names, map(float, xi)))) for xi, h in zip(x, hr)]
-        sim = lvenv.simulate(hearts, steps_per_beat=1000, max_beats=200, traces=False)
-        m = sim.metrics
-        good = (np.asarray(sim.status) == "ok") & (m["EF"] >= 0.2) & (m["EF"] <= 0.8)
-        good &= inside_bands(m)
-        tried += batch
-        for i in np.flatnonzero(good):
-            if len(rows) == n:
-                break
-            sbp, dbp = cuff_from_central(float(m["P_ao_dia"][i]), float(m["P_ao_mean"][i]))
-            row: dict[str, object] = {
-                "id": f"P{len(rows):05d}", "EF_pct": round(100 * float(m["EF"][i])), "ET_ms": round(1000 * float(m["ET"][i])),
-                "IVRT_ms": round(1000 * float(m["IVRT"][i])), "SBP_mmHg": round(sbp), "DBP_mmHg": round(dbp),
-                "HR_bpm": round(float(hr[i]), 1),
-            }
-            row.update({f"true_{parameter_column(name)}": f"{float(v):.6g}" for name, v in zip(space.names, x[i])})
-            rows.append(row)
-    return rows, n / tried
+    for i, (x, hr) in enumerate(zip(truths.parameters, truths.heart_rate)):
+        sbp, dbp = cuff_from_central(float(m["P_ao_dia"][i]), float(m["P_ao_mean"][i]))
+        row: dict[str, object] = {
+            "id": f"P{i:05d}", "EF_pct": round(100 * float(m["EF"][i])), "ET_ms": round(1000 * float(m["ET"][i])),
+            "IVRT_ms": round(1000 * float(m["IVRT"][i])), "SBP_mmHg": round(sbp), "DBP_mmHg": round(dbp),
+            "HR_bpm": round(float(hr), 1),
+        }
+        row.update({f"true_{parameter_column(name)}": f"{float(v):.6g}" for name, v in zip(DEFAULT_ACTION_PARAMS, x)})
+        rows.append(row)
+    return rows, n / truths.tried
 
 
 def corrupt(rows: list[dict[str, object]], fraction: float, seed: int) -> list[tuple[int, str]]:

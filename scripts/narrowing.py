@@ -128,7 +128,8 @@ def main() -> None:
     noise = NOISE if a.volume_sd is None else {**NOISE, **dict.fromkeys(VOLUME_NAMES, a.volume_sd)}
     base = builtin("normal")
     metrics = tuple(dict.fromkeys(m for names in sets.values() for m in names))
-    truths, obs = draw_truths(a.truths, np.random.default_rng(a.seed), base, metrics)
+    drawn = draw_truths(a.truths, np.random.default_rng(a.seed), base.heart)
+    truths, obs = drawn.parameters, drawn.observations(metrics)
     checkpoint = pathlib.Path(a.out + ".ckpt.npz")
     settings = {k: v for k, v in vars(a).items() if k not in ("out", "pool")}
     runs = load_records(checkpoint, settings)
