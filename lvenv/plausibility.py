@@ -48,7 +48,7 @@ from lvenv.metrics import METRICS, OBS_NAMES
 from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError
 
-__all__ = ["Band", "AORTIC", "FILLING", "resolve", "distance", "distance_slope", "penalty", "inside_bands", "report"]
+__all__ = ["Band", "AORTIC", "FILLING", "resolve", "distance", "distance_slope", "inside_bands", "report"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,11 +105,6 @@ def distance(band: Band, value):
 def distance_slope(band: Band, value):
     """d d / d o: −1 below the band, +1 above it, 0 inside (elementwise)."""
     return jnp.where(value < band.low, -1.0, jnp.where(value > band.high, 1.0, 0.0))
-
-
-def penalty(metrics: Mapping[str, object], bands: Sequence[Band]):
-    """Σ_b (d_b / s_b)² over ``bands`` for metrics by name (arrays broadcast)."""
-    return sum((distance(b, metrics[b.metric]) / b.scale) ** 2 for b in bands)
 
 
 def inside_bands(metrics: Mapping[str, object], plausibility: bool | Sequence[Band] = True):

@@ -4,6 +4,7 @@
 
     f(θ) = Σ_k r_k²,   r_k = sqrt(w_k / Σ w) (o_k − t_k) / t_k,   plus r_b = d_b / s_b per band b,
 
+the residuals of :func:`lvenv.env.core.residuals` (f is minus the env's reward),
 with the plausibility bands b of :mod:`lvenv.plausibility` (``plausibility``, default on), over
 the identification parameters (default τ2, Sa, R2, R3, C, Cat) in the unit cube of
 `lvenv.identification.ParameterSpace` (log axes where marked), with `scipy.optimize.least_squares`
@@ -46,7 +47,8 @@ import lvenv
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import OBS_NAMES
 from lvenv.patients import Patient, builtin
-from lvenv.plausibility import Band, distance, distance_slope, resolve
+from lvenv.env.core import residual_slopes, residuals
+from lvenv.plausibility import Band, resolve
 from lvenv.validation import integer
 from optim.minimize import MinimizeResult, _result
 from optim.protocol import History, OptimResult
@@ -64,10 +66,10 @@ class _Problem:
         self.patient, self.space, self.bands = patient, space, bands
         self.targets = list(patient.targets)
         weights = np.array([patient.weight(k) for k in self.targets])
-        weights = weights / weights.max()
-        self.sqrt_w = np.sqrt(weights / weights.sum())
+        self.weights = weights / weights.max()  # as the env scales them (lvenv.env.core.env_params)
         self.t = np.array([patient.targets[k] for k in self.targets])
         self.metrics = tuple(dict.fromkeys([*self.targets, *(b.metric for b in bands), *OBS_NAMES]))
+        self.depends = [self.metrics.index(k) for k in (*self.targets, *(b.metric for b in bands))]  # each residual's metric
         self.settings = {"steps_per_beat": steps_per_beat, "max_beats": max_beats}
         self.records: list[dict[str, np.ndarray]] = []
         self.elapsed: list[float] = []  # s from the fit's start to the end of each evaluation
@@ -79,25 +81,19 @@ class _Problem:
         xs = [self.space.clip(self.space.from_unit(u)) for u in points]
         hearts = [self.patient.heart.replace(**dict(zip(self.space.names, map(float, x)))) for x in xs]
         jac = lvenv.jacobian(hearts, wrt=self.space.names, metrics=self.metrics, **self.settings)
+        at = {k: np.asarray(v, float) for k, v in jac.metrics_at.items()}  # (batch,) each
+        r, mismatches = residuals(np.stack([at[k] for k in self.targets], axis=1), self.t, self.weights, at, self.bands)
+        slopes = np.asarray(residual_slopes(self.t, self.weights, at, self.bands))
+        r, mismatches = np.asarray(r), np.asarray(mismatches)
         n_res = len(self.targets) + len(self.bands)
         out, rows_f, rows_ok, rows_mismatch, rows_obs = [], [], [], [], []
         for b, x in enumerate(xs):
             ok = jac.status[b] == "ok"
             if ok:
-                at = {k: float(v[b]) for k, v in jac.metrics_at.items()}
-                m = np.array([at[k] for k in self.targets])
-                rel = (m - self.t) / self.t
                 d_metrics = jac.values[b] * self.space.rate(x)[None, :]  # (m, k) per unit-cube coordinate
-                rows = [self.sqrt_w[i] / self.t[i] * d_metrics[self.metrics.index(k)] for i, k in enumerate(self.targets)]
-                band_res, band_rows = [], []
-                for band in self.bands:
-                    value = at[band.metric]
-                    band_res.append(float(distance(band, value)) / band.scale)
-                    band_rows.append(float(distance_slope(band, value)) / band.scale * d_metrics[self.metrics.index(band.metric)])
-                residual = np.concatenate([self.sqrt_w * rel, band_res])
-                jacobian = np.vstack([*rows, *band_rows])
-                obs = np.array([at[k] for k in OBS_NAMES])
-                mismatch = float(np.sum(self.sqrt_w**2 * np.abs(rel)) / np.sum(self.sqrt_w**2))
+                residual, jacobian = r[b], slopes[b][:, None] * d_metrics[self.depends]
+                obs = np.array([at[k][b] for k in OBS_NAMES])
+                mismatch = float(mismatches[b])
             else:
                 residual, jacobian = np.full(n_res, FAILED_RESIDUAL), np.zeros((n_res, self.space.dimension))
                 obs, mismatch = np.full(len(OBS_NAMES), np.nan), np.inf

@@ -17,9 +17,9 @@ to reach steady state does.
 Reward (per member), with relative errors e_k = (o_k − t_k) / t_k over the patient's targets and
 weights w_k normalised so that max_k w_k = 1 (host-side, :func:`env_params`)::
 
-    r = − Σ_k w_k e_k² / Σ_k w_k  −  Σ_b κ (d_b / s_b)²,   d_b = max(0, lo_b − o_b, o_b − hi_b),
+    reward = − Σ_k w_k e_k² / Σ_k w_k  −  Σ_b κ (d_b / s_b)²,   d_b = max(0, lo_b − o_b, o_b − hi_b),
 
-computed on the noise-free model output, over the plausibility bands b in force
+that is −Σ_j r_j² over the residuals r of :func:`residuals` (κ = 1), computed on the noise-free model output, over the plausibility bands b in force
 (:mod:`lvenv.plausibility`: mean aortic pressure 80–120 mmHg always, s = 80 mmHg; by default also
 mean atrial pressure and EDP 4–25 mmHg, s = 25 mmHg; ``Config.plausibility``). ``mismatch`` = Σ_k w_k abs(e_k) / Σ_k w_k; an episode
 terminates when it falls below the tolerance, or when the simulation fails or the action is not
@@ -33,6 +33,8 @@ returns that member's reset observation, reward 0, and ignores its action), or D
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -43,11 +45,11 @@ from lvenv.env.spaces import ActionMap
 from lvenv.metrics import OBS_NAMES
 from lvenv.model import IDX_PAT, IDX_PC, IDX_V, ModelParams
 from lvenv.params import stack
-from lvenv.plausibility import Band, penalty, resolve
+from lvenv.plausibility import Band, distance, distance_slope, resolve
 from lvenv.simulation import DEFAULT_STEP_TOL, run_beats_parallel
 from lvenv.status import INVALID_ACTION, is_usable
 
-__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "FAILURE_REWARD", "ENV_SCHEME", "ENV_ACCELERATION"]
+__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "residuals", "residual_slopes", "FAILURE_REWARD", "ENV_SCHEME", "ENV_ACCELERATION"]
 
 FAILURE_REWARD = -10.0
 
@@ -120,13 +122,40 @@ def _observation(metrics: jax.Array, usable: jax.Array) -> jax.Array:
     return jnp.where(usable[:, None] & jnp.isfinite(metrics), metrics, 0.0)
 
 
-def _score(obs: jax.Array, params: EnvParams, config: Config):
-    targets, weights = params.targets.T, params.weights.T
+def residuals(obs, targets, weights, metrics: Mapping[str, Any], bands: Sequence[Band]):
+    """The objective as residuals r, shared by the reward (−Σ_j r_j², module docstring) and the
+    least-squares fit (:func:`optim.lm.fit_lm`, which minimises Σ_j r_j²).
+
+    ``obs``, ``targets``, ``weights``: (..., K) observed and target values of K metrics (internal
+    units) and their weights w_k ≥ 0 (0: untargeted; the observation may then be NaN);
+    ``metrics``: the bands' metrics by name, (...) each; ``bands``: :mod:`lvenv.plausibility`
+    bands. Returns r (..., K + B) = (sqrt(ŵ_k) e_k over k, d_b / s_b over b), with e_k =
+    (o_k − t_k) / t_k and ŵ_k = w_k / Σ_j w_j, and the mismatch Σ_k ŵ_k abs(e_k) (...).
+    Works on NumPy and JAX arrays (JAX arrays out)."""
     rel = jnp.where(weights > 0.0, (obs - targets) / targets, 0.0)  # an untargeted metric may be NaN (frames not recorded)
-    wsum = jnp.sum(weights, axis=1)
-    mse = jnp.sum(weights * rel**2, axis=1) / wsum
-    mismatch = jnp.sum(weights * jnp.abs(rel), axis=1) / wsum
-    return -(mse + penalty(dict(zip(OBS_NAMES, obs.T)), config.plausibility)), mismatch
+    share = weights / jnp.sum(weights, axis=-1, keepdims=True)
+    r = _columns(jnp.sqrt(share) * rel, [distance(b, metrics[b.metric]) / b.scale for b in bands])
+    return r, jnp.sum(share * jnp.abs(rel), axis=-1)
+
+
+def residual_slopes(targets, weights, metrics: Mapping[str, Any], bands: Sequence[Band]):
+    """∂r_j / ∂o_j of :func:`residuals` (..., K + B), each residual depending on one metric:
+    sqrt(ŵ_k) / t_k for a target, (d d_b / d o_b) / s_b for a band
+    (:func:`lvenv.plausibility.distance_slope`)."""
+    share = weights / jnp.sum(weights, axis=-1, keepdims=True)
+    return _columns(jnp.sqrt(share) / targets, [distance_slope(b, metrics[b.metric]) / b.scale for b in bands])
+
+
+def _columns(per_target, per_band):
+    """(..., K) target columns and B band values (...) as one (..., K + B) array, broadcast."""
+    shape = jnp.broadcast_shapes(jnp.shape(per_target)[:-1], *(jnp.shape(d) for d in per_band))
+    return jnp.concatenate([jnp.broadcast_to(per_target, shape + jnp.shape(per_target)[-1:]),
+                            *(jnp.broadcast_to(d, shape)[..., None] for d in per_band)], axis=-1)
+
+
+def _score(obs: jax.Array, params: EnvParams, config: Config):
+    r, mismatch = residuals(obs, params.targets.T, params.weights.T, dict(zip(OBS_NAMES, obs.T)), config.plausibility)
+    return -jnp.sum(r**2, axis=1), mismatch
 
 
 def _noisy(obs: jax.Array, key: jax.Array, config: Config) -> jax.Array:
