@@ -31,6 +31,7 @@ import dataclasses
 import functools
 import json
 import math
+import os
 import pathlib
 import warnings
 from collections.abc import Mapping, Sequence
@@ -42,9 +43,9 @@ from scipy.optimize import brentq
 from lvenv.geometry import Geometry, GeometryError, cavity_volume, wall_volume
 from lvenv.params import CellParams, LOParams
 from lvenv.trained import DATA, TrainedLO
-from lvenv.validation import InputError, real
+from lvenv.validation import InputError, integer, real
 
-__all__ = ["ARTEFACT", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "from_geometry", "unload", "inflate", "unload_to_volume"]
+__all__ = ["ARTEFACT", "ARTEFACT_ENV", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "from_geometry", "map_draws", "unload", "inflate", "unload_to_volume"]
 
 ARTEFACT = DATA / "anatomy" / "regression.json"
 FORMAT_VERSION = 1
@@ -167,16 +168,34 @@ class Regression:
                 "x": self.x.tolist(), "y": {k: v.tolist() for k, v in self.y.items()}, "provenance": self.provenance}
 
 
+#: Environment variable naming a regression artefact to use instead of the shipped one.
+ARTEFACT_ENV = "LVENV_ANATOMY_REGRESSION"
+
+
 @functools.lru_cache(maxsize=4)
-def _shipped(path: str) -> Regression:
+def _loaded(path: str) -> Regression:
     return Regression.load(path)
+
+
+def _regression(regression: Regression | str | pathlib.Path | None) -> Regression:
+    """``regression`` itself, the artefact at a path, or (None) the one :data:`ARTEFACT_ENV`
+    names if set, else the shipped :data:`ARTEFACT`; loaded once per path."""
+    if isinstance(regression, Regression):
+        return regression
+    if regression is None and os.environ.get(ARTEFACT_ENV):
+        path = pathlib.Path(os.environ[ARTEFACT_ENV])
+        if not path.is_file():
+            raise InputError(f"{ARTEFACT_ENV} = {str(path)!r} is not a file; it must name an anatomy regression artefact (`lvenv campaign regress --out`)")
+        regression = path
+    return _loaded(str(pathlib.Path(ARTEFACT if regression is None else regression).resolve()))
 
 
 def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Path | None = None, cell: CellParams | None = None) -> TrainedLO:
     """The GP-predicted trained LO maps of ``geometry`` (unloaded, mm), no FE run.
 
-    ``regression``: a :class:`Regression`, a path to an artefact, or None for the shipped one
-    (:data:`ARTEFACT`). The record's ``congruency["C"]`` is the predicted C of a heart trained
+    ``regression``: a :class:`Regression`, a path to an artefact, or None for the one the
+    environment variable :data:`ARTEFACT_ENV` names, else the shipped one (:data:`ARTEFACT`).
+    The record's ``congruency["C"]`` is the predicted C of a heart trained
     on this anatomy; ``provenance["sd"]`` holds the predictive sd of every parameter and of C
     (same units), ``provenance["outside_box"]`` the parameters outside the sampled box, and
     ``provenance["clipped"]`` any predicted parameter that fell outside its allowed range
@@ -184,8 +203,7 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
     """
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
-    if not isinstance(regression, Regression):
-        regression = _shipped(str(ARTEFACT if regression is None else pathlib.Path(regression).resolve()))
+    regression = _regression(regression)
     missing = [n for n in LO_OUTPUTS if n not in regression.outputs]
     if missing:
         raise InputError(f"the regression does not predict {missing}; it predicts {list(regression.outputs)}")
@@ -208,6 +226,27 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
                   **{k: v for k, v in regression.provenance.items() if k not in ("cv", "cv_predictions")}}
     lo = LOParams(**values)
     return TrainedLO(geometry, lo, CellParams() if cell is None else cell, {"C": c}, None, math.nan, provenance)
+
+
+def map_draws(geometry: Geometry, n: int, *, seed: int = 0, regression: Regression | str | pathlib.Path | None = None) -> list[LOParams]:
+    """``n`` draws of the LO maps of ``geometry`` from the regression's predictive distribution:
+    each parameter normal with its GP's mean and sd (one GP per parameter, so independent),
+    clipped to its allowed range. Refitting a patient at each draw carries the maps'
+    uncertainty into the fitted parameters."""
+    n, seed = integer("n", n, 1, 10_000), integer("seed", seed, 0)
+    regression = _regression(regression)
+    with warnings.catch_warnings():  # from_geometry's own call warns, not each draw
+        warnings.simplefilter("ignore", ExtrapolationWarning)
+        mean, sd = regression.predict([geometry], LO_OUTPUTS)
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(n):
+        values = {}
+        for field in dataclasses.fields(LOParams):
+            low, high = field.metadata["range"]
+            values[field.name] = float(np.clip(mean[field.name][0] + sd[field.name][0] * rng.standard_normal(), low, high))
+        draws.append(LOParams(**values))
+    return draws
 
 
 #: Assumed mid-wall end-diastolic strain by group (Di Achille et al. 2020: 10 % N, 15 % HF).
@@ -289,8 +328,8 @@ def unload_to_volume(end_diastolic: Geometry, edp: float, regression: Regression
     if not isinstance(end_diastolic, Geometry):
         raise InputError(f"end_diastolic must be an lvenv.geometry.Geometry, got {type(end_diastolic).__name__}")
     edp = real("edp", edp, 0.0, 10.0)
-    if lo is None and not isinstance(regression, Regression):
-        regression = _shipped(str(ARTEFACT if regression is None else pathlib.Path(regression).resolve()))
+    if lo is None:
+        regression = _regression(regression)
     edv = cavity_volume(end_diastolic)
 
     def maps(g: Geometry) -> LOParams:

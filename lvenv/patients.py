@@ -13,6 +13,17 @@ heart_failure           0.486   0.363     0.100       45
 
 Records round-trip through JSON (:meth:`Patient.to_json`, :meth:`Patient.from_json`); a malformed
 record raises ``ValueError`` naming the field.
+
+From images (DESIGN §5). A record's geometry may be the imaged, end-diastolic one: its ``unload``
+field says how to unload it, ``{"strain": ε}`` (the paper's rule, `lvenv.anatomy.unload`),
+``{"group": "N"}`` or ``{"group": "HF"}`` (the rule at that group's strain,
+:data:`lvenv.anatomy.ED_STRAIN`) or ``{"edp": p}`` (kPa: the strain at which the predicted
+passive curve reaches the imaged cavity volume at that end-diastolic pressure,
+`lvenv.anatomy.unload_to_volume`). ``"lo": "regression"`` takes the LO maps the anatomy
+regression predicts for the (unloaded) geometry (`lvenv.anatomy.from_geometry`). What was done
+is kept in :attr:`Patient.anatomy` (the imaged geometry, the strain, the maps' predictive sd),
+which the record round-trips; the resolved record holds the unloaded geometry and the maps'
+values, so reading it again does not unload twice.
 """
 
 from __future__ import annotations
@@ -58,6 +69,8 @@ class Patient:
     heart: Heart
     targets: Mapping[str, float]
     weights: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    #: How the heart's geometry and maps came from an imaged anatomy (module docstring), else empty.
+    anatomy: Mapping[str, Any] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -134,6 +147,7 @@ class Patient:
             "circulation": dataclasses.asdict(h.circulation),
             "targets": dict(self.targets),
             "weights": dict(self.weights),
+            **({"anatomy": dict(self.anatomy)} if self.anatomy else {}),
         }
 
     def to_json(self, path: str | pathlib.Path | None = None) -> str:
@@ -144,39 +158,50 @@ class Patient:
 
     @classmethod
     def from_dict(cls, record: dict[str, Any]) -> "Patient":
-        """A patient from a record: ``name``, ``geometry`` and ``targets`` required; ``lo``,
-        ``cell``, ``circulation`` and ``weights`` optional (``null`` means the default)."""
+        """A patient from a record: ``name``, ``geometry`` and ``targets`` required; ``lo``
+        (numbers or ``"regression"``), ``unload``, ``cell``, ``circulation``, ``weights`` and
+        ``anatomy`` optional (``null`` means the default; module docstring)."""
         if not isinstance(record, dict):
             raise InputError(f"a patient record must be a JSON object, got {type(record).__name__}")
         for key in ("name", "geometry", "targets"):
             if key not in record:
                 raise InputError(f"patient record is missing the field {key!r}")
-        known = {"name", "geometry", "lo", "cell", "circulation", "targets", "weights"}
+        known = {"name", "geometry", "lo", "unload", "cell", "circulation", "targets", "weights", "anatomy"}
         if extra := set(record) - known:
             raise InputError(f"patient record has unknown field(s) {sorted(extra)}; known: {sorted(known)}")
         parts = {}
         for key, part_cls in (("geometry", Geometry), ("lo", LOParams), ("cell", CellParams), ("circulation", Circulation)):
             value = record.get(key)
+            if key == "lo" and value == "regression":
+                continue
             if value is None:
                 if key == "geometry":
                     raise InputError("patient.geometry must be an object of named numbers, got null")
                 continue
             if not isinstance(value, dict):
-                raise InputError(f"patient.{key} must be an object of named numbers, got {type(value).__name__}")
+                allowed = ' or "regression"' if key == "lo" else ""
+                raise InputError(f"patient.{key} must be an object of named numbers{allowed}, got {value!r}")
             names = {f.name for f in dataclasses.fields(part_cls)}
             if extra := set(value) - names:
                 raise InputError(f"patient.{key} has unknown field(s) {sorted(extra)}; known: {sorted(names)}")
             if key == "geometry" and (missing := names - set(value)):
                 raise InputError(f"patient.geometry is missing the field(s) {sorted(missing)}")
             parts[key] = part_cls(**{k: _number(v, f"{key}.{k}") for k, v in value.items()})
-        for key in ("targets", "weights"):
+        for key in ("targets", "weights", "anatomy"):
             if record.get(key) is not None and not isinstance(record[key], dict):
-                raise InputError(f"patient.{key} must be an object mapping observation names to numbers, got {type(record[key]).__name__}")
+                raise InputError(f"patient.{key} must be an object, got {type(record[key]).__name__}")
+        anatomy = dict(record.get("anatomy") or {})
+        if record.get("unload") is not None:
+            maps = None if record.get("lo") == "regression" else parts.get("lo", LOParams())  # None: the regression's, at each trial shape
+            parts["geometry"], anatomy["unloading"] = _unloaded(parts["geometry"], record["unload"], maps)
+        if record.get("lo") == "regression":
+            parts["lo"], anatomy["maps"] = _predicted_maps(parts["geometry"])
         return cls(
             name=record["name"],
             heart=Heart(**parts),
             targets={k: _number(v, f"targets[{k!r}]") for k, v in (record["targets"] or {}).items()},
             weights={k: _number(v, f"weights[{k!r}]") for k, v in (record.get("weights") or {}).items()},
+            anatomy=anatomy,
         )
 
     @classmethod
@@ -200,6 +225,38 @@ class Patient:
         except json.JSONDecodeError as err:
             raise InputError(f"{source} is not valid JSON: {err}") from None
         return cls.from_dict(record)
+
+
+def _unloaded(imaged: Geometry, spec: Any, lo: LOParams | None) -> tuple[Geometry, dict[str, Any]]:
+    """The unloaded geometry of an imaged one by a record's ``unload`` field (module docstring)
+    and what was done, for :attr:`Patient.anatomy`. ``lo``: the maps whose passive curve an
+    ``edp`` search uses (None: the regression's)."""
+    from lvenv.anatomy import ED_STRAIN, unload, unload_to_volume
+
+    ways = ("strain", "group", "edp")
+    if not isinstance(spec, dict) or len(spec) != 1 or next(iter(spec)) not in ways:
+        raise InputError(f"patient.unload = {spec!r} must be an object with one of the fields {ways}")
+    (way, value), = spec.items()
+    if way == "group":
+        if value not in ED_STRAIN:
+            raise InputError(f"patient.unload.group = {value!r} is not a group; choose from {sorted(ED_STRAIN)}")
+        way, value = "strain", ED_STRAIN[value]
+    value = _number(value, f"unload.{way}")
+    if way == "strain":
+        unloaded, strain = unload(imaged, real("patient.unload.strain", value, 0.0, 1.0)), value
+    else:
+        unloaded, strain = unload_to_volume(imaged, real("patient.unload.edp", value, 0.0, 10.0), lo=lo)
+    return unloaded, {"imaged": dataclasses.asdict(imaged), "how": dict(spec), "strain": strain}
+
+
+def _predicted_maps(geometry: Geometry) -> tuple[LOParams, dict[str, Any]]:
+    """The anatomy regression's LO maps of ``geometry`` and their predictive sd, outside-box and
+    clipping notes, for :attr:`Patient.anatomy`."""
+    from lvenv.anatomy import from_geometry
+
+    trained = from_geometry(geometry)
+    return trained.lo, {"source": "regression", "C": trained.congruency["C"],
+                        **{k: trained.provenance[k] for k in ("sd", "outside_box", "clipped", "training_anatomies")}}
 
 
 def _number(value: Any, where: str) -> float:

@@ -170,3 +170,49 @@ def test_a_prediction_outside_a_parameters_range_is_clipped_with_a_warning(fitte
         trained = anatomy.from_geometry(Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0), shifted)
     low = next(f for f in dataclasses.fields(LOParams) if f.name == "delay").metadata["range"][0]
     assert trained.lo.delay == low and trained.provenance["clipped"]
+
+
+def test_a_patient_imaged_at_end_diastole_is_unloaded_and_gets_its_anatomys_maps(fitted, tmp_path, monkeypatch):
+    """`lvenv fit PATIENT.json`'s record path: an imaged geometry is unloaded (the paper's rule or
+    the passive-curve search), the maps come from the regression the environment names, the
+    record says what was done and reads back without unloading twice."""
+    import dataclasses
+
+    from lvenv import presets
+    from lvenv.anatomy import ARTEFACT_ENV, inflate, map_draws
+    from lvenv.coupling import passive_volume
+    from lvenv.geometry import cavity_volume
+    from lvenv.patients import Patient, builtin
+
+    path = regression.save(fitted, tmp_path / "regression.json")
+    monkeypatch.setenv(ARTEFACT_ENV, str(path))
+    unloaded = Geometry(36.0, 9.0, 52.0, 10.0, 0.70, -60.0)
+    imaged = inflate(unloaded, 0.12)
+    record = {**builtin("normal").to_dict(), "geometry": dataclasses.asdict(imaged), "unload": {"strain": 0.12}, "lo": "regression"}
+    patient = Patient.from_dict(record)
+    assert patient.heart.geometry.as_tuple() == pytest.approx(unloaded.as_tuple(), rel=1e-9)
+    assert patient.heart.lo == anatomy.from_geometry(patient.heart.geometry, fitted).lo
+    maps = patient.anatomy["maps"]
+    assert maps["source"] == "regression" and set(maps["sd"]) == set(regression.OUTPUTS) and all(v > 0 for v in maps["sd"].values())
+    assert patient.anatomy["unloading"] == {"imaged": dataclasses.asdict(imaged), "how": {"strain": 0.12}, "strain": 0.12}
+    assert Patient.from_json(patient.to_json()) == patient
+    # by the end-diastolic pressure: the unloaded shape's predicted passive curve reaches the imaged volume
+    searched = Patient.from_dict({**record, "unload": {"edp": 1.5}})
+    heart = searched.heart
+    assert float(passive_volume(1.5, cavity_volume(heart.geometry), heart.lo)) == pytest.approx(cavity_volume(imaged), rel=1e-7)
+    assert heart.lo == anatomy.from_geometry(heart.geometry, fitted).lo and 0 < searched.anatomy["unloading"]["strain"] < 0.6
+    # the maps' uncertainty: draws scatter by the predictive sd around the predicted maps
+    draws = map_draws(patient.heart.geometry, 400, seed=1)
+    mu1 = np.array([d.mu1 for d in draws])
+    assert abs(mu1.mean() - patient.heart.lo.mu1) < 4 * maps["sd"]["mu1"] / 20 and mu1.std() == pytest.approx(maps["sd"]["mu1"], rel=0.15)
+    # bad records name the field
+    for bad, match in (({"strain": 2.0}, r"patient.unload.strain = 2"), ({"group": "X"}, r"patient.unload.group = 'X'"),
+                       ({"width": 1}, r"one of the fields \('strain', 'group', 'edp'\)")):
+        with pytest.raises(InputError, match=match):
+            Patient.from_dict({**record, "unload": bad})
+    with pytest.raises(InputError, match=r"patient.lo must be an object of named numbers or \"regression\", got 'gp'"):
+        Patient.from_dict({**record, "lo": "gp"})
+    monkeypatch.setenv(ARTEFACT_ENV, str(tmp_path / "missing.json"))
+    with pytest.raises(InputError, match=ARTEFACT_ENV):
+        Patient.from_dict(record)
+    assert presets.N_UNLOADED == Patient.from_dict({**record, "geometry": dataclasses.asdict(presets.N_UNLOADED), "unload": None, "lo": None}).heart.geometry
