@@ -21,12 +21,27 @@ then ``identify.posterior(patient)`` is the usual entry point:
 The scripts' sampler options live with the scripts (``scripts/posterior_options.py``).
 """
 
-from optim.identify.density import PLAUSIBILITY_SD, PriorSample, log_density, prior_draws, prior_sample
-from optim.identify.noise import NOISE, VOLUME_NAMES, Relative, chi2, chi2_weighted, measurement_sd
-from optim.identify.profiles import DELTA_95, FLAT, Profiles, profile
+from optim.identify import density, noise, profiles, sampler
+from optim.identify.density import PriorSample, log_density, prior_draws, prior_sample
+from optim.identify.noise import Relative, chi2, chi2_weighted, measurement_sd
+from optim.identify.profiles import Profiles, profile
 from optim.identify.report import write_report
-from optim.identify.sampler import SAMPLERS, Posterior, amortised, posterior, probability_lower
+from optim.identify.sampler import Posterior, amortised, posterior, probability_lower
 from optim.identify.sensitivities import Sensitivity, sensitivity
+
+# The constants are bound by assignment, so that the API reference documents them here too.
+#: Each target's measurement error σ_k (:data:`optim.identify.noise.NOISE`).
+NOISE = noise.NOISE
+#: The volume metrics, whose errors are relative (:data:`optim.identify.noise.VOLUME_NAMES`).
+VOLUME_NAMES = noise.VOLUME_NAMES
+#: σ (kPa) of the posterior's plausibility factor (:data:`optim.identify.density.PLAUSIBILITY_SD`).
+PLAUSIBILITY_SD = density.PLAUSIBILITY_SD
+#: The profile-likelihood threshold, Δχ² (:data:`optim.identify.profiles.DELTA_95`).
+DELTA_95 = profiles.DELTA_95
+#: A flat profile's largest range, χ² units (:data:`optim.identify.profiles.FLAT`).
+FLAT = profiles.FLAT
+#: What samples after the pilot (:data:`optim.identify.sampler.SAMPLERS`).
+SAMPLERS = sampler.SAMPLERS
 
 __all__ = [
     "NOISE", "Relative", "VOLUME_NAMES", "measurement_sd", "chi2_weighted", "chi2", "PLAUSIBILITY_SD", "DELTA_95", "FLAT",
