@@ -23,6 +23,6 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/python scripts/bench_lo.py
 
-# The documentation site, warnings as errors; open docs/_build/html/index.html.
+# The documentation site, warnings as errors, the tutorial executed; open docs/_build/html/index.html.
 docs: $(STAMP)
 	$(VENV)/bin/python -m sphinx -W -E -q -b html docs docs/_build/html

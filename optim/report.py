@@ -1,20 +1,25 @@
-"""`lvenv report`: one markdown report of every experiment the project reproduces, rebuilt from
-the results the experiments left under ``out/`` (and the trained records shipped in the package).
+"""`lvenv report`: the results of every experiment the project reproduces, rebuilt from what the
+experiments left under ``out/`` (and the trained records shipped in the package).
 
-Nothing is recomputed. Each section states the command that produces its results. A section
-whose results are missing says so and gives that command. Sources:
+Nothing is recomputed. Each section states the command that produces its results and the date
+of their run (the file's modification time, or the record's own date). A section whose results
+are missing says so and gives that command; it never shows a number of its own. Two forms, with
+the same sections: one markdown report (:func:`build_report`, ``lvenv report``), and one page per
+section for the documentation site (:func:`build_pages`, called by ``docs/conf.py``). Sources:
 
-=================  ==============================================  ==============================================
-section            read from                                       written by
-=================  ==============================================  ==============================================
-congruency         ``lvenv/data/trained_*.json``                   ``python scripts/train_presets.py``
-generalisation     ``out/generalisation/generalisation.{md,png}``     ``python scripts/generalisation.py``
-multi-element      ``out/multielement/multielement.md``            ``python scripts/multielement_study.py``
-inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``      ``make run``
-cohort             ``out/cohort/*.csv`` with its ``.json``         ``lvenv cohort REPORTS --out out/cohort/…``
-performance        ``out/bench/*.json``                            ``lvenv bench NAME``
-anatomy            ``out/anatomy/anatomy.md`` and its figures      ``python scripts/anatomy_study.py``
-=================  ==============================================  ==============================================
+=================  =====================================================  ===============================================
+section            read from                                              written by
+=================  =====================================================  ===============================================
+training           ``lvenv/data/trained_*.json``                          ``python scripts/train_presets.py``
+generalisation     ``out/generalisation/generalisation.{md,png}``         ``python scripts/generalisation.py``
+multi-element      ``out/multielement/multielement.md``                   ``python scripts/multielement_study.py``
+inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
+                   ``out/cohort/*.csv`` with its ``.json``                ``lvenv cohort REPORTS --out out/cohort/…``
+calibration        ``out/identify/calibration.json``;                     ``python scripts/calibration.py``;
+                   ``out/bench/amortised.json``                           ``lvenv bench amortised``
+benchmarks         ``out/bench/*.json``                                   ``lvenv bench NAME``
+anatomy            ``out/anatomy/anatomy.md`` and its figures             ``python scripts/anatomy_study.py``
+=================  =====================================================  ===============================================
 """
 
 from __future__ import annotations
@@ -23,7 +28,9 @@ import csv
 import datetime
 import json
 import os
+from collections.abc import Iterator, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -31,9 +38,15 @@ from lvenv import trained
 from lvenv.plots import histogram_figure
 from optim.cohort import summarise
 
-__all__ = ["build_report", "SECTIONS"]
+__all__ = ["build_report", "build_pages", "SECTIONS", "TITLES"]
 
-SECTIONS = ("congruency", "generalisation", "multi-element", "inverse problem", "cohort", "performance", "anatomy")
+#: Section keys, in report order; also the page names of :func:`build_pages` (spaces → hyphens).
+SECTIONS = ("training", "generalisation", "multi-element", "inverse problem", "calibration", "benchmarks", "anatomy")
+#: The heading of each section.
+TITLES = {"training": "Training (congruency)", "generalisation": "Generalisation", "multi-element": "Multi-element models",
+          "inverse problem": "Inverse problem", "calibration": "Calibration of the posteriors", "benchmarks": "Benchmarks",
+          "anatomy": "Anatomy"}
+BENCH_ROWS = 60  # rows of one benchmark's table at most; the rest stay in its JSON, which the page names
 
 
 def _stamp(path: Path) -> str:
@@ -48,10 +61,10 @@ def _image(path: Path, report_dir: Path) -> str:
     return f"![{path.stem}]({os.path.relpath(path, report_dir)})"
 
 
-def _congruency() -> list[str]:
+def _training() -> list[str]:
     lines = ["Command: `python scripts/train_presets.py` (or `lvenv train HEART --out FILE`); "
-             "read from the records shipped in `lvenv/data/`.", "",
-             "| heart | C ① | C ② | C ③ | C | C without the delay | delay (ms) | backend, mesh |", "|---|---|---|---|---|---|---|---|"]
+             "read from the records shipped in `lvenv/data/`, each trained on the date in its row.", "",
+             "| heart | C ① | C ② | C ③ | C | C without the delay | delay (ms) | backend, mesh | trained |", "|---|---|---|---|---|---|---|---|---|"]
     for name in ("normal", "heart_failure"):
         record = trained.builtin(name)
         c, without = record.congruency, record.congruency_without_delay or {}
@@ -59,6 +72,7 @@ def _congruency() -> list[str]:
         cells.append(f"{100 * without['C']:.2f} %" if "C" in without else "—")
         cells.append(f"{1000 * record.lo.delay:.0f}")
         cells.append(f"{record.provenance.get('backend')}, h = {record.provenance.get('mesh_size_mm', '—')} mm")
+        cells.append(str(record.provenance.get("created", "—"))[:10])
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines + [""]
 
@@ -70,7 +84,11 @@ def _markdown_file(path: Path, command: str, report_dir: Path, images: tuple[Pat
     return lines + [line for image in images if image.exists() for line in (_image(image, report_dir), "")]
 
 
-def _inverse(root: Path, report_dir: Path) -> list[str]:
+def _inverse(root: Path, report_dir: Path, level: int) -> list[str]:
+    return ["#" * level + " Built-in patients", "", *_fits(root, report_dir), "#" * level + " Cohorts", "", *_cohorts(root, report_dir)]
+
+
+def _fits(root: Path, report_dir: Path) -> list[str]:
     table = root / "fit" / "fits.txt"
     if not table.exists():
         return _missing("make run")
@@ -104,37 +122,125 @@ def _mismatch_histogram(path: Path, figure: Path) -> None:
     histogram_figure(100 * values, figure, "mismatch (%)", f"{path.name}: {len(values)} fits")
 
 
-def _performance(root: Path) -> list[str]:
+def _per_parameter(rows: Mapping[str, Mapping[str, str]]) -> list[str]:
+    """A table with one column per parameter: ``rows`` maps a row label to {parameter: cell}."""
+    names = list(next(iter(rows.values())))
+    lines = ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    return lines + [f"| {label} | " + " | ".join(cells.get(n, "—") for n in names) + " |" for label, cells in rows.items()] + [""]
+
+
+def _calibration(root: Path, level: int) -> list[str]:
+    """Coverage of the 90 % intervals on synthetic truths: the MCMC posterior
+    (``scripts/calibration.py``) and the amortised one (``scripts/bench_amortised.py``);
+    subsection headings at ``level``."""
+    lines = ["#" * level + " MCMC posterior (`optim.identify.posterior`)", ""]
+    path = root / "identify" / "calibration.json"
+    if path.exists():
+        result = json.loads(path.read_text())
+        options = result["options"]
+        tail = result["binomial_tail"]
+        lines += [f"Command: `python scripts/calibration.py --truths {options['truths']} --draw {options['draw']} --seed {options['seed']}` "
+                  f"(other settings: {', '.join(f'{k} {v}' for k, v in options.items() if k not in ('truths', 'draw', 'seed', 'out'))}); "
+                  f"results of {_stamp(path)}.", "",
+                  f"Fraction of {len(result['runs'])} noisy truths inside their 90 % interval (calibrated: about 0.9), with P, the binomial "
+                  "probability of so few hits or fewer if the intervals were calibrated, and the interval's median width (fraction of the bound):", ""]
+        lines += _per_parameter({
+            "equal-tailed": {n: f"{c:.2f} (P {tail['inside'][n]:.2f})" for n, c in result["coverage"].items()},
+            "highest-density": {n: f"{c:.2f} (P {tail['inside_hdi'][n]:.2f})" for n, c in result["coverage_hdi"].items()},
+            "median width": {n: f"{w:.2f}" for n, w in result["median_width"].items()},
+        })
+    else:
+        lines += _missing("python scripts/calibration.py")
+    lines += ["#" * level + " Amortised posterior (`optim.identify.amortised`)", ""]
+    path = root / "bench" / "amortised.json"
+    if not path.exists():
+        return lines + _missing("lvenv bench amortised")
+    result = json.loads(path.read_text())
+    lines += [f"Command: `lvenv bench amortised`; results of {_stamp(path)}.", "",
+              f"On {result['truths']} held-out truths from the prior: the fraction inside their 90 % interval, and the "
+              "Kolmogorov–Smirnov p-value of the truths' ranks among the samples against uniform (simulation-based calibration, "
+              f"Talts S et al., arXiv:1804.06788, 2018); {100 * result['out_of_distribution']:.1f} % flagged out of distribution.", ""]
+    return lines + _per_parameter({"90 % coverage": {n: f"{c:.2f}" for n, c in result["coverage_90"].items()},
+                                   "rank KS p": {n: f"{p:.3g}" for n, p in result["rank_ks_p"].items()}})
+
+
+def _leaves(value: Any, key: str = "") -> Iterator[tuple[str, str]]:
+    """(dotted key, text) of every number, string or short list in a JSON value."""
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            yield from _leaves(v, f"{key}.{k}" if key else str(k))
+    elif isinstance(value, list) and not all(isinstance(v, (int, float, str, bool)) or v is None for v in value):
+        for i, v in enumerate(value):
+            yield from _leaves(v, f"{key}[{i}]")
+    elif isinstance(value, float):
+        yield key, f"{value:.4g}"
+    else:
+        yield key, ", ".join(map(str, value)) if isinstance(value, list) else str(value)
+
+
+def _benchmarks(root: Path, level: int) -> list[str]:
     benches = sorted((root / "bench").glob("*.json"))
     if not benches:
-        return _missing("lvenv bench lo   (and env, optim, kriging, fe, cohort, cold_start)")
+        return _missing("lvenv bench lo   (and env, optim, kriging, fe, cohort, cold_start, amortised)")
     lines = []
     for path in benches:
-        lines += [f"### {path.stem}", "", f"Command: `lvenv bench {path.stem}`; results of {_stamp(path)}.", "",
-                  "```json", json.dumps(json.loads(path.read_text()), indent=1)[:4000], "```", ""]
+        rows = list(_leaves(json.loads(path.read_text())))
+        lines += ["#" * level + f" {path.stem}", "", f"Command: `lvenv bench {path.stem}`; results of {_stamp(path)}.", "",
+                  "| quantity | value |", "|---|---|", *(f"| `{k}` | {v} |" for k, v in rows[:BENCH_ROWS]), ""]
+        if len(rows) > BENCH_ROWS:
+            lines += [f"{len(rows) - BENCH_ROWS} more values in `{path}`.", ""]
     return lines
+
+
+def _sections(root: Path, report_dir: Path, level: int) -> dict[str, list[str]]:
+    """Each section's markdown lines, figures written to (or linked from) ``report_dir``, its
+    subsection headings at ``level`` (3 in the report, 2 on a page of its own)."""
+    return {
+        "training": _training(),
+        "generalisation": _markdown_file(root / "generalisation" / "generalisation.md", "python scripts/generalisation.py", report_dir,
+                                         (root / "generalisation" / "generalisation.png",)),
+        "multi-element": _markdown_file(root / "multielement" / "multielement.md", "python scripts/multielement_study.py", report_dir),
+        "inverse problem": _inverse(root, report_dir, level),
+        "calibration": _calibration(root, level),
+        "benchmarks": _benchmarks(root, level),
+        "anatomy": _markdown_file(root / "anatomy" / "anatomy.md", "python scripts/anatomy_study.py", report_dir,
+                                  tuple(root / "anatomy" / f"anatomy_{name}.png" for name in ("scatter", "contours", "parity"))),
+    }
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
 
 
 def build_report(root: str | os.PathLike[str] = "out", path: str | os.PathLike[str] | None = None) -> Path:
     """Write the report (default ``<root>/report/report.md``) and its figures; returns its path."""
     root = Path(root)
     path = Path(path) if path is not None else root / "report" / "report.md"
-    report_dir = path.parent
-    report_dir.mkdir(parents=True, exist_ok=True)
-    now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
-    lines = [f"# lvenv report ({now})", "", f"Rebuilt by `lvenv report` from the results under `{root}/`; nothing recomputed.", ""]
-    sections = {
-        "congruency": _congruency(),
-        "generalisation": _markdown_file(root / "generalisation" / "generalisation.md", "python scripts/generalisation.py", report_dir,
-                                         (root / "generalisation" / "generalisation.png",)),
-        "multi-element": _markdown_file(root / "multielement" / "multielement.md", "python scripts/multielement_study.py", report_dir),
-        "inverse problem": _inverse(root, report_dir),
-        "cohort": _cohorts(root, report_dir),
-        "performance": _performance(root),
-        "anatomy": _markdown_file(root / "anatomy" / "anatomy.md", "python scripts/anatomy_study.py", report_dir,
-                                  tuple(root / "anatomy" / f"anatomy_{name}.png" for name in ("scatter", "contours", "parity"))),
-    }
-    for title, body in sections.items():
-        lines += [f"## {title.capitalize()}", "", *body]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = [f"# lvenv report ({_now()})", "", f"Rebuilt by `lvenv report` from the results under `{root}/`; nothing recomputed.", ""]
+    for key, body in _sections(root, path.parent, 3).items():
+        lines += [f"## {TITLES[key]}", "", *body]
     path.write_text("\n".join(lines).rstrip() + "\n")
     return path
+
+
+def build_pages(root: str | os.PathLike[str], folder: str | os.PathLike[str]) -> list[Path]:
+    """Write the report as pages for the documentation site: ``<folder>/index.md`` (a MyST
+    toctree) and one ``<folder>/<section>.md`` per section (:data:`SECTIONS`, spaces → hyphens),
+    figures beside them; returns the pages' paths, the index first."""
+    root, folder = Path(root), Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    now = _now()
+    pages = {key.replace(" ", "-"): body for key, body in _sections(root, folder, 2).items()}
+    index = folder / "index.md"
+    index.write_text("\n".join([
+        "# Results", "",
+        f"Rebuilt on {now} by `lvenv report` ({{mod}}`optim.report`) from the results under `{root.name}/` and the trained "
+        "records shipped in `lvenv/data/`; nothing is recomputed, and nothing here is kept by hand. Each page names the "
+        "command that produces its results and the date they were made; a page whose results are missing gives that command.",
+        "", "```{toctree}", ":maxdepth: 1", "", *pages, "```", ""]))
+    paths = [index]
+    for (name, body), key in zip(pages.items(), SECTIONS):
+        paths.append(folder / f"{name}.md")
+        paths[-1].write_text("\n".join([f"# {TITLES[key]}", "", *body]).rstrip() + "\n")
+    return paths

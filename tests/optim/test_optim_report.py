@@ -1,0 +1,73 @@
+"""`lvenv report` as documentation pages (optim.report.build_pages): one page per results kind,
+each with its command and the date of its run, numbers only from the results under ``out/``."""
+
+import json
+import os
+import re
+
+from optim import report
+
+
+def _results(root):
+    """A small ``out/`` tree: a calibration run, a benchmark and a `make run` table."""
+    params = ("tau2", "Sa")
+    (root / "identify").mkdir(parents=True)
+    (root / "identify" / "calibration.json").write_text(json.dumps({
+        "coverage": {"tau2": 0.85, "Sa": 0.95}, "coverage_hdi": {"tau2": 0.8, "Sa": 0.9},
+        "binomial_tail": {"inside": {"tau2": 0.32, "Sa": 0.88}, "inside_hdi": {"tau2": 0.13, "Sa": 0.61}},
+        "median_width": {"tau2": 0.27, "Sa": 0.41}, "runs": [{}] * 20,
+        "options": {"truths": 20, "draw": "prior", "seed": 3, "walkers": 64, "out": "x.json"}}))
+    (root / "bench").mkdir()
+    (root / "bench" / "amortised.json").write_text(json.dumps({
+        "truths": 300, "out_of_distribution": 0.02, "coverage_90": {n: 0.9 for n in params}, "rank_ks_p": {"tau2": 0.25, "Sa": 0.0081},
+        "training": {"pairs": 18802, "seconds": 11.068963}, "targets": ["EF", "ET"], "mcmc": [{"patient": "truth0", "seconds": 962.74}],
+        "rows": {f"r{i}": i for i in range(report.BENCH_ROWS)}}))
+    (root / "fit").mkdir()
+    (root / "fit" / "fits.txt").write_text("patient  method  mismatch\nnormal   mads    0.42 %\n")
+    os.utime(root / "fit" / "fits.txt", (0, 86400 * 365))  # 1971-01-01
+
+
+def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_path):
+    root = tmp_path / "out"
+    _results(root)
+    pages = report.build_pages(root, tmp_path / "docs" / "results")
+    names = [p.stem for p in pages]
+    assert names == ["index", "training", "generalisation", "multi-element", "inverse-problem", "calibration", "benchmarks", "anatomy"]
+    index = pages[0].read_text()
+    assert index.startswith("# Results") and all(f"\n{name}\n" in index for name in names[1:]), "the index's toctree lists every page"
+    text = {p.stem: p.read_text() for p in pages[1:]}
+    for key, (name, page) in zip(report.SECTIONS, text.items(), strict=True):
+        assert page.startswith(f"# {report.TITLES[key]}\n"), name
+        assert "Command: `" in page, f"{name} names its command"
+        assert re.search(r"#{3,} ", page) is None, f"{name}: subsections are H2 on a page of their own"
+    assert "| normal | " in text["training"] and re.search(r"\| \d{4}-\d\d-\d\d \|", text["training"]), "the record's training date"
+    assert "Not run yet. Command: `python scripts/generalisation.py`" in text["generalisation"]
+    assert "Not run yet. Command: `python scripts/multielement_study.py`" in text["multi-element"]
+    inverse = text["inverse-problem"]
+    assert "## Built-in patients" in inverse and "results of 1971-01-01 00:00 UTC" in inverse and "normal   mads    0.42 %" in inverse
+    assert "Not run yet. Command: `lvenv cohort REPORTS.csv --out out/cohort/fits.csv`" in inverse
+    calibration = text["calibration"]
+    assert "`python scripts/calibration.py --truths 20 --draw prior --seed 3` (other settings: walkers 64)" in calibration
+    assert "| equal-tailed | 0.85 (P 0.32) | 0.95 (P 0.88) |" in calibration and "| median width | 0.27 | 0.41 |" in calibration
+    assert "On 300 held-out truths" in calibration and "2.0 % flagged" in calibration and "| rank KS p | 0.25 | 0.0081 |" in calibration
+    bench = text["benchmarks"]
+    assert "Command: `lvenv bench amortised`" in bench
+    assert "| `training.seconds` | 11.07 |" in bench and "| `targets` | EF, ET |" in bench and "| `mcmc[0].patient` | truth0 |" in bench
+    rows = len(re.findall(r"^\| `", bench, re.M))
+    assert rows == report.BENCH_ROWS and "more values in" in bench, "a long benchmark is cut, and the page says where the rest is"
+
+
+def test_report_holds_the_same_sections_one_level_down(tmp_path):
+    root = tmp_path / "out"
+    _results(root)
+    text = report.build_report(root).read_text()
+    assert [line[3:] for line in text.splitlines() if line.startswith("## ")] == [report.TITLES[s] for s in report.SECTIONS]
+    assert "### MCMC posterior" in text and "### amortised" in text and "### Built-in patients" in text
+
+
+def test_a_results_tree_without_results_gives_only_commands(tmp_path):
+    pages = report.build_pages(tmp_path / "nothing", tmp_path / "pages")
+    for page in pages[2:]:  # the training page reads the records shipped in the package
+        body = page.read_text()
+        assert "Not run yet. Command: `" in body, page.stem
+        assert not re.search(r"\d+(\.\d+)? ?%", body), f"{page.stem}: no number without a result behind it"
