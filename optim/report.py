@@ -14,6 +14,8 @@ training           ``lvenv/data/trained_*.json``                          ``pyth
 generalisation     ``out/generalisation/generalisation.{md,png}``         ``python scripts/generalisation.py``
 multi-element      ``out/multielement/multielement.md``                   ``python scripts/multielement_study.py``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
+                   ``out/identify/posterior_patients.json`` and           ``python scripts/posterior_patients.py``;
+                   ``posterior_pairs.png``;
                    ``out/cohort/*.csv`` with its ``.json``                ``lvenv cohort REPORTS --out out/cohort/…``
 calibration        ``out/identify/calibration.json``;                     ``python scripts/calibration.py``;
                    ``out/bench/amortised.json``                           ``lvenv bench amortised``
@@ -35,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from lvenv import trained
+from lvenv.identification import ACTION_BOUNDS
 from lvenv.plots import histogram_figure
 from optim.cohort import summarise
 
@@ -85,7 +88,9 @@ def _markdown_file(path: Path, command: str, report_dir: Path, images: tuple[Pat
 
 
 def _inverse(root: Path, report_dir: Path, level: int) -> list[str]:
-    return ["#" * level + " Built-in patients", "", *_fits(root, report_dir), "#" * level + " Cohorts", "", *_cohorts(root, report_dir)]
+    return ["#" * level + " Built-in patients", "", *_fits(root, report_dir),
+            "#" * level + " Posteriors of the built-in patients", "", *_posteriors(root, report_dir),
+            "#" * level + " Cohorts", "", *_cohorts(root, report_dir)]
 
 
 def _fits(root: Path, report_dir: Path) -> list[str]:
@@ -95,6 +100,23 @@ def _fits(root: Path, report_dir: Path) -> list[str]:
     lines = [f"Command: `make run`; results of {_stamp(table)}.", "", "```", table.read_text().rstrip(), "```", ""]
     lines += [_image(p, report_dir) for p in sorted((root / "fit").glob("pv_*.png"))]
     return lines + [""]
+
+
+def _posteriors(root: Path, report_dir: Path) -> list[str]:
+    """Medians and 90 % intervals (physical units, :data:`lvenv.identification.ACTION_BOUNDS`)
+    of ``scripts/posterior_patients.py``, its two probabilities and its pairs plot."""
+    path = root / "identify" / "posterior_patients.json"
+    if not path.exists():
+        return _missing("python scripts/posterior_patients.py")
+    result = json.loads(path.read_text())
+    posteriors = {name: value["posterior"] for name, value in result.items() if isinstance(value, Mapping) and "posterior" in value}
+    lines = [f"Command: `python scripts/posterior_patients.py` (sampler {next(iter(posteriors.values()))['sampler']}); "
+             f"results of {_stamp(path)}. Median and 90 % credible interval per parameter:", ""]
+    lines += _per_parameter({name: {n: f"{m:.3g} ({post['interval_90'][n][0]:.3g}–{post['interval_90'][n][1]:.3g})" for n, m in post["median"].items()}
+                             for name, post in posteriors.items()}, units=True)
+    lines += ["; ".join(f"{key} = {value:.3f}" for key, value in result.items() if key.startswith("P(")), ""]
+    figure = path.with_name("posterior_pairs.png")
+    return lines + ([_image(figure, report_dir), ""] if figure.exists() else [])
 
 
 def _cohorts(root: Path, report_dir: Path) -> list[str]:
@@ -122,10 +144,12 @@ def _mismatch_histogram(path: Path, figure: Path) -> None:
     histogram_figure(100 * values, figure, "mismatch (%)", f"{path.name}: {len(values)} fits")
 
 
-def _per_parameter(rows: Mapping[str, Mapping[str, str]]) -> list[str]:
-    """A table with one column per parameter: ``rows`` maps a row label to {parameter: cell}."""
+def _per_parameter(rows: Mapping[str, Mapping[str, str]], units: bool = False) -> list[str]:
+    """A table with one column per parameter: ``rows`` maps a row label to {parameter: cell};
+    ``units``: each column's heading gives its parameter's unit."""
     names = list(next(iter(rows.values())))
-    lines = ["| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    head = [f"{n} ({ACTION_BOUNDS[n].units})" if units and ACTION_BOUNDS[n].units != "1" else n for n in names]
+    lines = ["| | " + " | ".join(head) + " |", "|---|" + "---|" * len(names)]
     return lines + [f"| {label} | " + " | ".join(cells.get(n, "—") for n in names) + " |" for label, cells in rows.items()] + [""]
 
 

@@ -17,6 +17,10 @@ def _results(root):
         "binomial_tail": {"inside": {"tau2": 0.32, "Sa": 0.88}, "inside_hdi": {"tau2": 0.13, "Sa": 0.61}},
         "median_width": {"tau2": 0.27, "Sa": 0.41}, "runs": [{}] * 20,
         "options": {"truths": 20, "draw": "prior", "seed": 3, "walkers": 64, "out": "x.json"}}))
+    (root / "identify" / "posterior_patients.json").write_text(json.dumps({
+        name: {"fit": {"mismatch": 0.001}, "posterior": {"sampler": "ensemble", "median": {"tau2": tau2, "Sa": 1.0},
+                                                         "interval_90": {"tau2": [0.9 * tau2, 1.1 * tau2], "Sa": [0.5, 1.5]}}}
+        for name, tau2 in (("normal", 0.15), ("heart_failure", 0.2))} | {"P(Sa_HF < Sa_N)": 0.9876, "posterior_wall_s_total": 12.0}))
     (root / "bench").mkdir()
     (root / "bench" / "amortised.json").write_text(json.dumps({
         "truths": 300, "out_of_distribution": 0.02, "coverage_90": {n: 0.9 for n in params}, "rank_ks_p": {"tau2": 0.25, "Sa": 0.0081},
@@ -46,6 +50,8 @@ def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_
     inverse = text["inverse-problem"]
     assert "## Built-in patients" in inverse and "results of 1971-01-01 00:00 UTC" in inverse and "normal   mads    0.42 %" in inverse
     assert "Not run yet. Command: `lvenv cohort REPORTS.csv --out out/cohort/fits.csv`" in inverse
+    assert "`python scripts/posterior_patients.py` (sampler ensemble)" in inverse and "| | tau2 (s) | Sa |" in inverse
+    assert "| heart_failure | 0.2 (0.18–0.22) | 1 (0.5–1.5) |" in inverse and "P(Sa_HF < Sa_N) = 0.988" in inverse
     calibration = text["calibration"]
     assert "`python scripts/calibration.py --truths 20 --draw prior --seed 3` (other settings: walkers 64)" in calibration
     assert "| equal-tailed | 0.85 (P 0.32) | 0.95 (P 0.88) |" in calibration and "| median width | 0.27 | 0.41 |" in calibration
