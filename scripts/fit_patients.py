@@ -1,9 +1,13 @@
 """Fit the built-in patients with MADS, CMA-ES, kriging and least squares with autodiff
-Jacobians (lm); print the table (mmHg, ms).
+Jacobians (lm); print the table (mmHg, ms). Beside the point fits, each patient's amortised
+posterior (optim.amortised: median and 90 % interval per parameter) and, from the two patients'
+independent posterior draws, P(Sa_HF < Sa_N) and P(tau2_HF > tau2_N): what the data say about
+the paper's question, where the four methods' point ratios disagree.
 
     python scripts/fit_patients.py [--budget 480] [--num-envs 16] [--out out/fit]
     python scripts/fit_patients.py --synthetic 10 --method cma     # synthetic recovery
     python scripts/fit_patients.py --fidelity [--fidelity-mesh 6]  # also check each patient's best fit against the 3-D oracle
+    python scripts/fit_patients.py --posterior-samples 0            # point fits only
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from lvenv.identification import ACTION_BOUNDS
+from lvenv.patients import builtin
 from lvenv.metrics import display, header
 from lvenv.plausibility import report, resolve
 from optim.fit import fit_patients, synthetic_recovery
@@ -66,6 +71,33 @@ def print_fits(rows, plausibility: bool = True) -> None:
                 print(f"  {m:8s} " + "  ".join(f"{n} ×{b.parameters[n] / a.parameters[n]:.2f}" if a.parameters[n] else f"{n} n/a" for n in names))
 
 
+def print_posteriors(patients, n_samples: int, seed: int) -> None:
+    """Each patient's amortised posterior (median [5 %, 95 %]; tau2 in ms) and, for N and HF,
+    P(Sa_HF < Sa_N) and P(tau2_HF > tau2_N) over all pairs of their independent draws
+    (optim.identify.probability_lower)."""
+    from optim.amortised import identify_patients
+    from optim.identify import probability_lower
+
+    answers = {a.patient: a for a in identify_patients([builtin(p) for p in patients], n_samples, seed=seed)}
+    names = list(ACTION_BOUNDS)
+    heads = [f"{n} ({'ms' if n == 'tau2' else ACTION_BOUNDS[n].units})" for n in names]
+    cells = {p: [f"{_param(n, a.posterior.median[n])} [{_param(n, a.posterior.interval_90[n][0])}, {_param(n, a.posterior.interval_90[n][1])}]"
+                 for n in names] if a.posterior is not None else ["—"] * len(names) for p, a in answers.items()}
+    widths = [max(len(h), *(len(c[j]) for c in cells.values())) for j, h in enumerate(heads)]
+    print(f"\namortised posterior (optim.amortised, {n_samples} draws each): median [90 % interval]")
+    print("patient        " + " | ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
+    for p, a in answers.items():
+        print(f"{p:14s} " + " | ".join(f"{c:>{w}s}" for c, w in zip(cells[p], widths)))
+    for p, a in answers.items():
+        if a.flag:
+            print(f"{p}: FLAGGED, not to be trusted: {a.flag}")
+    n, hf = answers.get("normal"), answers.get("heart_failure")
+    if n is not None and hf is not None and n.posterior is not None and hf.posterior is not None:
+        print(f"P(Sa_HF < Sa_N) = {probability_lower(hf.posterior, n.posterior, 'Sa'):.3f}   "
+              f"P(tau2_HF > tau2_N) = {probability_lower(n.posterior, hf.posterior, 'tau2'):.3f}   "
+              "(independent posteriors of the two patients, over all pairs of draws)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--patients", nargs="+", default=["normal", "heart_failure"])
@@ -82,6 +114,8 @@ def main() -> None:
     ap.add_argument("--fidelity-beats", type=int, default=2, help="FE beats from the LO steady state")
     ap.add_argument("--no-plausibility", dest="plausibility", action="store_false",
                     help="drop the filling-pressure bands (mean atrial pressure, EDP) from the objective")
+    ap.add_argument("--posterior-samples", type=int, default=4000, metavar="N",
+                    help="draws of each patient's amortised posterior (0: none; default %(default)s)")
     a = ap.parse_args()
     if a.synthetic:
         rep = synthetic_recovery(a.synthetic, a.method, a.num_envs, a.budget or 1600, a.seed, a.steps_per_beat)
@@ -100,6 +134,8 @@ def main() -> None:
     table = io.StringIO()
     with contextlib.redirect_stdout(table):
         print_fits(rows, a.plausibility)
+        if a.posterior_samples:
+            print_posteriors(a.patients, a.posterior_samples, a.seed)
     print(table.getvalue(), end="")
     Path(a.out, "fits.txt").write_text(table.getvalue())  # for `lvenv report`
     worst = max(r.mismatch for r in rows)
