@@ -58,6 +58,7 @@ version, other bounds, noise, bands, bases or observation names give an
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.metadata
 import pathlib
 import subprocess
@@ -77,7 +78,7 @@ from lvenv.plausibility import resolve as resolve_bands
 from lvenv.validation import InputError, integer, real
 
 __all__ = ["OBSERVED", "GEOMETRY", "CONDITION", "BASES", "HEART_RATE", "MISSING", "OOD_QUANTILE", "OOD_COMPONENTS", "OOD_FIT_ROWS", "FORMAT", "VERSION",
-           "DEFAULT_ARTEFACT", "Architecture", "Estimator", "training_patients", "simulate", "train", "save", "load", "base_index", "observations",
+           "DEFAULT_ARTEFACT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "train", "save", "load", "base_index", "observations",
            "Identified", "identify_patients"]
 
 #: The targets the estimator conditions on (internal units: EF fraction, times s, pressures kPa).
@@ -276,16 +277,41 @@ class Estimator:
                     reasons[r] = "; ".join(filter(None, [reasons[r], text]))
         return reasons
 
-    def sample(self, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray, n_samples: int, seed: int = 0) -> np.ndarray:
-        """``n_samples`` posterior draws per row: (n, n_samples, 6), physical units, columns
-        :data:`DEFAULT_ACTION_PARAMS`."""
+    @functools.cached_property
+    def _sampler(self) -> Any:
+        """The jitted draw (key, conditions (n, C), n_samples) → (n, n_samples, 6) standardised
+        logit coordinates, float32, :data:`SAMPLE_BLOCK` rows at a time (``lax.map``), compiled
+        once per estimator and shape."""
         import jax
+        import jax.numpy as jnp
         import paramax
 
-        flow = paramax.unwrap(self.flow)
+        base = paramax.unwrap(self.flow).base_dist
+        loc, scale = (jnp.asarray(a, jnp.float32) for a in (base.loc, base.scale))
+        inverse = _coupling_inverse(self.flow, jnp.float32)
+
+        def block(key: jax.Array, cond: jax.Array, n_samples: int) -> jax.Array:
+            eps = loc + scale * jax.random.normal(key, (cond.shape[0], n_samples, loc.shape[0]), jnp.float32)
+            return inverse(eps, cond)
+
+        def draw(key: jax.Array, cond: jax.Array, n_samples: int) -> jax.Array:
+            blocks = cond.reshape(-1, SAMPLE_BLOCK, cond.shape[-1])
+            z = jax.lax.map(lambda kc: block(*kc, n_samples), (jax.random.split(key, len(blocks)), blocks))
+            return z.reshape(-1, n_samples, loc.shape[0])
+
+        return jax.jit(draw, static_argnums=2)
+
+    def sample(self, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray, n_samples: int, seed: int = 0) -> np.ndarray:
+        """``n_samples`` posterior draws per row: (n, n_samples, 6), physical units, columns
+        :data:`DEFAULT_ACTION_PARAMS`. One jitted pass over all rows (:func:`_coupling_inverse`,
+        float32); a row's draws depend on ``seed`` and on its block of :data:`SAMPLE_BLOCK` rows."""
+        import jax
+
         cond = self.condition(obs, heart_rate, base)
-        z = np.asarray(jax.jit(lambda key, c: flow.sample(key, (n_samples,), condition=c))(jax.random.key(seed), cond))
-        z = np.swapaxes(z, 0, 1) * self.arrays["theta_sd"] + self.arrays["theta_mean"]
+        n = len(cond)
+        padded = np.concatenate([cond, np.repeat(cond[-1:], -n % SAMPLE_BLOCK, axis=0)]).astype(np.float32)
+        z = np.asarray(self._sampler(jax.random.key(seed), padded, integer("n_samples", n_samples, 1))[:n], np.float64)
+        z = z * self.arrays["theta_sd"] + self.arrays["theta_mean"]
         return ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).from_unit(from_logit(z))
 
     def log_prob(self, x: np.ndarray, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray) -> np.ndarray:
@@ -294,6 +320,77 @@ class Estimator:
         import paramax
 
         return np.asarray(paramax.unwrap(self.flow).log_prob(z, self.condition(obs, heart_rate, base)))
+
+
+#: Rows of conditions per block of the jitted draw (:meth:`Estimator.sample`): a block's
+#: intermediates (rows × samples × spline knots) stay in cache, which on a CPU is faster than one
+#: pass over every row (measured: 1,000 rows × 1,000 draws, 8 → 5 s CPU, 1,000 → 17 s).
+SAMPLE_BLOCK = 8
+#: Minimum knot derivative of flowjax's ``RationalQuadraticSpline`` (its default, which
+#: :meth:`Architecture.build` keeps); :func:`_coupling_inverse` needs it.
+_MIN_DERIVATIVE = 1e-3
+
+
+def _coupling_inverse(flow: Any, dtype: Any) -> Any:
+    """The flow's bijection, base → parameters (flowjax's ``Invert(Scan(Coupling, Permute))``),
+    as one batched function ``(eps (n, s, 6), cond (n, C)) → z (n, s, 6)`` in ``dtype``: the same
+    arithmetic as ``flow.bijection.transform`` per draw (Durkan et al. 2019, the rational-quadratic
+    spline's inverse, their eq. 6–8), laid out for a CPU: each coupling layer's conditioner is three
+    matrix products over all draws, the conditions' share of its first layer computed once per row,
+    and the spline's knots lie along the leading axis, its bin picked by comparison (no gathers).
+    flowjax's own vectorised path evaluates the knots draw by draw and is 3× slower."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import paramax
+    from jax.flatten_util import ravel_pytree
+
+    flow = paramax.unwrap(flow)
+    coupling, permute = flow.bijection.bijection.bijection.bijections
+    inverse = np.asarray(permute.inverse_permutation[0])
+    weights = [jnp.asarray(layer.weight, dtype) for layer in coupling.conditioner.layers]
+    biases = [jnp.asarray(layer.bias, dtype) for layer in coupling.conditioner.layers]
+    kept, dim = coupling.untransformed_dim, coupling.dim
+    spline = coupling.transformer_constructor(jnp.zeros(weights[-1].shape[1] // (dim - kept)))
+    init = ravel_pytree(eqx.filter(spline, eqx.is_inexact_array))[0].astype(dtype)
+    lo, hi = spline.interval
+    widths, min_width = spline.x_pos.arr.shape[-1], spline.x_pos.min_width
+    cumulative = jnp.tril(jnp.ones((widths - 1, widths - 1), dtype))
+
+    def positions(a: jax.Array) -> jax.Array:
+        """Knot positions (widths + 1, m) from unconstrained (widths, m): paramax's RealToIncreasingOnInterval."""
+        w = min_width + (hi - lo - min_width * widths) * jax.nn.softmax(a, axis=0)
+        edge = jnp.ones((1, a.shape[1]), dtype)
+        return jnp.concatenate([lo * edge, lo + cumulative @ w[:-1], hi * edge])
+
+    def transform(eps: jax.Array, cond: jax.Array) -> jax.Array:
+        y = eps.astype(dtype)
+        c = cond.astype(dtype)
+        rows, draws = y.shape[:2]
+        for layer in reversed(range(weights[0].shape[0])):
+            y = y[..., inverse[layer]]
+            fixed, moved = y[..., :kept], y[..., kept:].reshape(-1)
+            first = weights[0][layer]
+            h = fixed @ first[:, :kept].T + (c @ first[:, kept:].T + biases[0][layer])[:, None, :]
+            for w, b in zip(weights[1:], biases[1:]):
+                h = jax.nn.relu(h) @ w[layer].T + b[layer]
+            p = (h.reshape(rows * draws, dim - kept, -1) + init).transpose(2, 0, 1).reshape(len(init), -1)
+            xp, yp = positions(p[:widths]), positions(p[widths:2 * widths])
+            deriv = jax.nn.softplus(p[2 * widths:]) + _MIN_DERIVATIVE
+            inside = (moved >= lo) & (moved <= hi)
+            v = jnp.clip(moved, lo, hi)
+            k = jnp.clip(jnp.sum(yp < v, axis=0) - 1, 0, widths - 1)
+            onehot = (jnp.arange(widths)[:, None] == k).astype(dtype)
+            xk, xk1, yk, yk1, dk, dk1 = (jnp.sum(onehot * a[o:o + widths], axis=0) for a in (xp, yp, deriv) for o in (0, 1))
+            sk = (yk1 - yk) / (xk1 - xk)
+            shift = (v - yk) * (dk1 + dk - 2 * sk)
+            qa, qb, qc = (yk1 - yk) * (sk - dk) + shift, (yk1 - yk) * dk - shift, -sk * (v - yk)
+            xi = 2 * qc / (-qb - jnp.sqrt(qb * qb - 4 * qa * qc))
+            x = jnp.where(inside, jnp.clip(xi * (xk1 - xk) + xk, lo, hi), moved)
+            y = jnp.concatenate([fixed, x.reshape(rows, draws, dim - kept)], axis=-1)
+        return y
+
+    return transform
 
 
 def _noisy_masked(clean: np.ndarray, sigma: np.ndarray, rng: np.random.Generator) -> np.ndarray:

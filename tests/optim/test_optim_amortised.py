@@ -127,6 +127,49 @@ def test_identify_amortised_returns_one_posterior_per_patient(data):
         amortised_posteriors(Patient("other", normal.heart.replace(Pat=1.2), {"EF": 0.6}), estimator=estimator)
 
 
+@pytest.mark.parametrize("which", ["tiny", "shipped"])
+def test_batched_draw_is_the_flows_own_inverse_and_compiles_once(data, which):
+    """optim.amortised's batched inverse (the sampler's hot path) equals flowjax's own
+    flow.bijection.transform draw by draw, also for base draws beyond the spline's interval
+    (identity there); float32 to 1e-4. Repeated draws of one shape reuse one compilation."""
+    import jax
+    import jax.numpy as jnp
+    import paramax
+
+    estimator = data[2] if which == "tiny" else amortised.load()
+    flow = paramax.unwrap(estimator.flow)
+    rng = np.random.default_rng(5)
+    cond, eps = rng.standard_normal((6, len(amortised.CONDITION))), 3.0 * rng.standard_normal((6, 7, 6))
+    assert np.any(np.abs(eps) > estimator.architecture.interval)
+    reference = np.asarray(jax.vmap(lambda e, c: jax.vmap(lambda x: flow.bijection.transform(x, c))(e))(eps, cond))
+    for dtype, tolerance in ((jnp.float64, 1e-10), (jnp.float32, 1e-4)):
+        np.testing.assert_allclose(np.asarray(amortised._coupling_inverse(estimator.flow, dtype)(eps, cond)), reference, atol=tolerance)
+    obs, hr, base = np.tile([[0.6, 0.3, 0.08, 10.0, 12.5, 6.0]], (3, 1)), np.full(3, 60.0), np.zeros(3, int)
+    first = estimator.sample(obs, hr, base, 64, seed=1)
+    compiled = estimator._sampler._cache_size()
+    second = estimator.sample(obs[:2], hr[:2], base[:2], 64, seed=2)  # padded to the same block: no new compilation
+    assert first.shape == (3, 64, 6) and second.shape == (2, 64, 6) and first.dtype == np.float64 and not np.array_equal(first[:2], second)
+    assert estimator._sampler._cache_size() == compiled
+
+
+def test_refine_replaces_flagged_posteriors_by_mcmc_and_keeps_the_flag():
+    """identify_patients(refine=True): the flagged patient (far from every simulated heart) gets
+    the MCMC posterior, marked refined with its reason kept; the one in distribution keeps the
+    amortised answer; one the estimator does not cover is flagged with the reason."""
+    normal = builtin("normal")
+    far = dataclasses.replace(normal, name="far", targets={"EF": 0.15, "ET": 0.12, "IVRT": 0.25, "P_ao_pulse": 20.0})
+    volume = dataclasses.replace(normal, name="volume", targets={"EF": 0.6, "EDV": 120.0})
+    mcmc = {"walkers": 12, "steps": 4, "chains": 0, "steps_per_beat": 200, "max_beats": 20}
+    answers = amortised.identify_patients([normal, far, volume], 200, refine=False)
+    assert [bool(a.flag) for a in answers] == [False, True, True] and "['EDV']" in answers[2].flag and answers[2].posterior is None
+    calls = []
+    ok, refined = amortised.identify_patients([normal, far], 200, refine=True, mcmc_options=mcmc, progress=lambda *a: calls.append(a))
+    assert calls == [(0, 1, "far")]
+    assert (ok.refined, ok.posterior.sampler, ok.flag) == (False, "amortised", "")
+    assert refined.refined and refined.posterior.sampler == "ensemble" and refined.flag == answers[1].flag != ""
+    assert refined.posterior.out_of_distribution == refined.flag and refined.posterior.evaluations > 0
+
+
 def test_shipped_artefact_answers_the_built_in_patients():
     """The shipped artefact loads (its metadata matches this code) and places the built-in
     patients in distribution, with HF's contraction efficiency below N's more likely than not."""
