@@ -79,7 +79,7 @@ from lvenv.validation import InputError, integer, real
 
 __all__ = ["OBSERVED", "GEOMETRY", "CONDITION", "BASES", "HEART_RATE", "MISSING", "OOD_QUANTILE", "OOD_COMPONENTS", "OOD_FIT_ROWS", "FORMAT", "VERSION",
            "DEFAULT_ARTEFACT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "train", "save", "load", "base_index", "observations",
-           "Identified", "identify_patients"]
+           "Identified", "identify_patients", "HELD_OUT_TARGETS", "held_out_patients"]
 
 #: The targets the estimator conditions on (internal units: EF fraction, times s, pressures kPa).
 OBSERVED = ("EF", "ET", "IVRT", "P_ao_dia", "P_ao_mean", "P_ao_pulse")
@@ -595,6 +595,34 @@ def load(path: str | pathlib.Path = DEFAULT_ARTEFACT) -> Estimator:
     if bad:
         raise ArchiveError(f"{what}: arrays {bad} are not finite numbers")
     return Estimator(_with_arrays(flow, [arrays[n] for n in names]), architecture, {k: arrays[k] for k in _ARRAY_NAMES}, meta)
+
+
+#: The targets of :func:`held_out_patients`: the built-in patients' own.
+HELD_OUT_TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
+
+
+def held_out_patients(estimator: Estimator, n: int, seed: int, targets: Sequence[str] = HELD_OUT_TARGETS) -> tuple[list[Patient], np.ndarray, int]:
+    """``n`` simulated truths from the prior over ``estimator``'s base hearts and heart-rate range
+    (:func:`simulate`, seed ``seed + 1000``, which training did not use), each a patient whose
+    ``targets`` carry the noise of :data:`optim.identify.NOISE` (``numpy`` seed ``seed``).
+    Returns the patients, their true parameters (m, 6; physical units, columns
+    :data:`DEFAULT_ACTION_PARAMS`) and how many truths were skipped because the noise pushed a
+    target outside its metric's range."""
+    from optim.identify import NOISE, measurement_sd
+
+    draws = simulate(n, bases=estimator.bases, heart_rate=estimator.heart_rate, seed=seed + 1000, batch=128)
+    sigma = measurement_sd(dict.fromkeys(OBSERVED, 1.0), NOISE)
+    noisy = draws.observations + sigma * np.random.default_rng(seed).standard_normal(draws.observations.shape)
+    columns = [OBSERVED.index(k) for k in targets]
+    patients, truths = [], []
+    for j in range(len(noisy)):
+        try:
+            patients.append(Patient(f"truth{j}", _base_heart(estimator.bases[draws.base[j]]).replace(HR=float(draws.heart_rate[j])),
+                                    {k: float(noisy[j, c]) for k, c in zip(targets, columns)}))
+        except InputError:  # noise pushed a target outside its metric's range
+            continue
+        truths.append(draws.parameters[j])
+    return patients, np.array(truths).reshape(-1, len(DEFAULT_ACTION_PARAMS)), len(noisy) - len(patients)
 
 
 @dataclasses.dataclass(frozen=True)
