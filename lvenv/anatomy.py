@@ -77,7 +77,9 @@ def kernel(n_inputs: int, *, constant: float = 1.0, length_scale: Sequence[float
 class Regression:
     """A loaded regression artefact (module docstring). ``outputs`` maps a name to its scaling
     (``mean``, ``scale``), its hyperparameters (``constant``, ``length_scale``, ``noise``) and
-    ``cv``; ``x`` and ``y`` are the standardised training data; ``box`` the sampling box."""
+    ``cv``, or, for an output the training kept at one value, to ``{"mean": value, "fixed":
+    true}`` (predicted as that value with sd 0); ``x`` and ``y`` are the standardised training
+    data; ``box`` the sampling box."""
 
     x_mean: np.ndarray
     x_scale: np.ndarray
@@ -103,11 +105,11 @@ class Regression:
             reg = cls(np.asarray(record["x_mean"], float), np.asarray(record["x_scale"], float), x, y, outputs,
                       {k: (float(lo), float(hi)) for k, (lo, hi) in record["box"].items()}, tuple(record["ids"]), dict(record["provenance"]))
             for name, spec in outputs.items():
-                for field in ("mean", "scale", "constant", "noise"):
+                for field in ("mean",) if spec.get("fixed") else ("mean", "scale", "constant", "noise"):
                     value = spec[field]
                     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                         raise ValueError(f"outputs.{name}.{field} = {value!r} is not a finite number")
-                if len(spec["length_scale"]) != len(INPUTS):
+                if not spec.get("fixed") and len(spec["length_scale"]) != len(INPUTS):
                     raise ValueError(f"outputs.{name}.length_scale has {len(spec['length_scale'])} entries, not {len(INPUTS)}")
         except (KeyError, TypeError, ValueError) as err:
             raise InputError(f"{source} is malformed: {type(err).__name__}: {err}") from None
@@ -157,8 +159,11 @@ class Regression:
         x = self.standardise(geometries)
         mean, sd = {}, {}
         for name in names:
+            spec = self.outputs.get(name, {})
+            if spec.get("fixed"):
+                mean[name], sd[name] = np.full(len(x), float(spec["mean"])), np.zeros(len(x))
+                continue
             m, s = self._gp(name).predict(x, return_std=True)
-            spec = self.outputs[name]
             mean[name], sd[name] = m * spec["scale"] + spec["mean"], s * spec["scale"]
         return mean, sd
 

@@ -782,7 +782,7 @@ def campaign_regress_command(directory, out_path, restarts, folds, seed, as_json
 
     fitted = regression.fit(campaign.DATASET if directory is None else directory, restarts=restarts, folds=folds, seed=seed)
     path = regression.save(fitted, ARTEFACT if out_path is None else out_path)
-    cv = {name: spec["cv"] for name, spec in fitted.outputs.items()}
+    cv = {name: spec.get("cv", "fixed") for name, spec in fitted.outputs.items()}
     if as_json:
         _print_json({"artefact": str(path), "anatomies": len(fitted.ids), "cv": cv})
         return EXIT_OK
@@ -790,7 +790,10 @@ def campaign_regress_command(directory, out_path, restarts, folds, seed, as_json
     for col in ("output", "R²", "RMSE", "within 2 sd"):
         table.add_column(col, justify="right")
     for name, figures in cv.items():
-        table.add_row(name, f"{figures['r2']:.3f}", f"{figures['rmse']:.4g}", f"{100 * figures['coverage_2sd']:.0f} %")
+        if figures == "fixed":
+            table.add_row(name, "fixed by training", "", "")
+        else:
+            table.add_row(name, f"{figures['r2']:.3f}", f"{figures['rmse']:.4g}", f"{100 * figures['coverage_2sd']:.0f} %")
     _out().print(table)
     return EXIT_OK
 

@@ -10,7 +10,9 @@ which `save` writes as the package's JSON artefact.
 
 Cross-validation figures per output: R² = 1 − Σ(y − ŷ)² / Σ(y − ȳ)² over the held-out
 predictions, the RMSE (physical units) and the fraction of held-out anatomies within 2
-predictive sd of their trained value.
+predictive sd of their trained value. An output with one value over every training anatomy
+(a parameter congruency training keeps fixed, such as α and β) gets no GP: the artefact marks
+it ``fixed`` and predicts that value with sd 0, and it has no cross-validation figures.
 
 `held_out(regression)` checks the regression where it matters, on the campaign's held-out
 anatomies (sampled apart, never in the training set): the congruency C of the GP-predicted maps
@@ -38,7 +40,7 @@ from lvenv.validation import InputError, integer
 from optim import campaign
 from optim.cohort import GEOMETRY_COLUMNS
 
-__all__ = ["OUTPUTS", "MIN_ANATOMIES", "training_set", "fit_gp", "cross_validate", "fit", "save", "held_out"]
+__all__ = ["OUTPUTS", "MIN_ANATOMIES", "training_set", "is_fixed", "fit_gp", "cross_validate", "fit", "save", "held_out"]
 
 #: What the regression predicts: the LO parameters and the trained heart's C.
 OUTPUTS = (*LO_OUTPUTS, "C")
@@ -58,6 +60,11 @@ def training_set(directory: str | os.PathLike[str] = campaign.DATASET, split: st
 def _scaling(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     mean, scale = values.mean(axis=0), values.std(axis=0)
     return mean, np.where(scale > 0, scale, 1.0)
+
+
+def is_fixed(values: np.ndarray) -> bool:
+    """Whether ``values`` are one number (to 1e-12 relative): an output the training kept fixed."""
+    return bool(np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))))
 
 
 def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 5, seed: int = 0):
@@ -82,13 +89,16 @@ def _hyperparameters(gp) -> dict[str, Any]:
 
 
 def cross_validate(x: np.ndarray, y: dict[str, np.ndarray], folds: int = 5, restarts: int = 5, seed: int = 0) -> dict[str, dict[str, Any]]:
-    """k-fold cross-validation per output (module docstring): ``r2``, ``rmse``, ``coverage_2sd``
-    and the held-out ``predicted`` means and ``sd`` in the anatomies' order."""
+    """k-fold cross-validation per varying output (module docstring; fixed ones are left out):
+    ``r2``, ``rmse``, ``coverage_2sd`` and the held-out ``predicted`` means and ``sd`` in the
+    anatomies' order."""
     from sklearn.model_selection import KFold
 
     folds = integer("folds", folds, 2, len(x))
     out = {}
     for name, values in y.items():
+        if is_fixed(values):
+            continue
         mean, sd = np.empty(len(x)), np.empty(len(x))
         for train, test in KFold(folds, shuffle=True, random_state=seed).split(x):
             x_mean, x_scale = _scaling(x[train])
@@ -120,6 +130,9 @@ def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int =
     xs = (x - x_mean) / x_scale
     specs, ys = {}, {}
     for name, values in y.items():
+        if is_fixed(values):
+            specs[name], ys[name] = {"mean": float(values[0]), "fixed": True}, np.zeros_like(values)
+            continue
         y_mean, y_scale = _scaling(values)
         ys[name] = (values - y_mean) / y_scale
         gp = fit_gp(xs, ys[name], restarts, seed)
@@ -130,7 +143,7 @@ def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int =
     provenance = {"dataset": str(directory), "dataset_sha256": hashlib.sha256(index).hexdigest()[:16], "settings": config["settings"],
                   "oracle_code": sorted({r["oracle_code"] for r in campaign.read_index(directory) if r["id"] in set(ids)}),
                   "restarts": restarts, "seed": seed, "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                  "cv_predictions": {name: {"predicted": cv[name]["predicted"], "sd": cv[name]["sd"]} for name in y}}
+                  "cv_predictions": {name: {"predicted": v["predicted"], "sd": v["sd"]} for name, v in cv.items()}}
     box = {k: tuple(v) for k, v in config["box"].items()}
     return Regression(x_mean, x_scale, xs, ys, specs, box, tuple(ids), provenance)
 

@@ -57,7 +57,8 @@ def _markdown(summary: dict, command: str) -> str:
     if "cv" in summary:
         lines += ["", f"Cross-validation ({summary['folds']}-fold, {summary['training_anatomies']} anatomies):", "",
                   "| output | R² | RMSE | within 2 sd |", "|---|---|---|---|"]
-        lines += [f"| {k} | {v['r2']:.3f} | {v['rmse']:.4g} | {100 * v['coverage_2sd']:.0f} % |" for k, v in summary["cv"].items()]
+        lines += [f"| {k} | fixed by training | | |" if v == "fixed" else f"| {k} | {v['r2']:.3f} | {v['rmse']:.4g} | {100 * v['coverage_2sd']:.0f} % |"
+                  for k, v in summary["cv"].items()]
     if summary.get("held_out"):
         lines += ["", "| held-out anatomy | C trained (%) | C GP-predicted (%) | C N maps (%) |", "|---|---|---|---|"]
         lines += [f"| {r['id']} | {100 * r['C_trained']:.2f} | {100 * r['C_predicted']:.2f} | {100 * r['C_baseline']:.2f} |" for r in summary["held_out"]]
@@ -99,7 +100,7 @@ def main() -> None:
         regression.save(fitted, args.artefact)
         cv_predictions = fitted.provenance["cv_predictions"]
         summary.update(training_anatomies=len(ids), folds=args.folds, artefact=str(args.artefact),
-                       cv={k: v["cv"] for k, v in fitted.outputs.items()}, held_out=regression.held_out(fitted, args.dataset))
+                       cv={k: v.get("cv", "fixed") for k, v in fitted.outputs.items()}, held_out=regression.held_out(fitted, args.dataset))
         args.out.mkdir(parents=True, exist_ok=True)
         summary["figures"] = [str(p) for p in (
             plots.anatomy_scatter_figure(fitted, args.out / "anatomy_scatter.png"),

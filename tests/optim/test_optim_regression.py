@@ -29,14 +29,15 @@ def _truth(g: dict) -> dict:
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    """A campaign folder whose anatomies carry trained values from :func:`_truth` plus 0.5 % noise."""
+    """A campaign folder whose anatomies carry trained values from :func:`_truth` plus 0.5 % noise,
+    except α, which training keeps fixed."""
     directory = tmp_path_factory.mktemp("anatomy")
     campaign.run(directory, n=N, held_out=3, seed=2, settings=Settings(backend="multielement", budget=16), limit=0)
     rows = campaign.read_index(directory)
     rng = np.random.default_rng(0)
     for row in rows:
         g = {name: row[col] for col, name in GEOMETRY_COLUMNS.items()}
-        row.update({k: v * (1 + 0.005 * rng.standard_normal()) for k, v in _truth(g).items()}, status="accepted", reason="", oracle_code="x")
+        row.update({k: v * (1 + 0.005 * rng.standard_normal()) for k, v in _truth(g).items()}, alpha=0.7, status="accepted", reason="", oracle_code="x")
     with (directory / "anatomies.csv").open("w", newline="") as handle:
         writer = csv.DictWriter(handle, campaign.COLUMNS, lineterminator="\n")
         writer.writeheader()
@@ -56,6 +57,21 @@ def test_cross_validation_recovers_a_smooth_map_with_calibrated_intervals(fitted
         assert cv["r2"] > 0.9, (name, cv)
         assert 0.75 <= cv["coverage_2sd"] <= 1.0, (name, cv)
     assert fitted.ids == tuple(f"A{i:03d}" for i in range(N))  # the held-out anatomies stay out
+
+
+def test_an_output_training_kept_fixed_is_predicted_exactly_with_no_spread(fitted, tmp_path):
+    """α is 0.7 on every anatomy: no GP, no cross-validation figures, the value with sd 0 and
+    every map draw at it, through the saved artefact too."""
+    from lvenv.anatomy import map_draws
+
+    assert fitted.outputs["alpha"] == {"mean": 0.7, "fixed": True}
+    assert "alpha" not in fitted.provenance["cv_predictions"]
+    geometry = Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0)
+    loaded = Regression.load(regression.save(fitted, tmp_path / "regression.json"))
+    mean, sd = loaded.predict([geometry, Geometry(40.0, 12.0, 60.0, 8.0, 0.6, -70.0)], ["alpha", "mu1"])
+    assert mean["alpha"].tolist() == [0.7, 0.7] and sd["alpha"].tolist() == [0.0, 0.0] and np.all(sd["mu1"] > 0)
+    draws = map_draws(geometry, 5, regression=loaded)
+    assert {d.alpha for d in draws} == {0.7} and len({d.mu1 for d in draws}) == 5
 
 
 def test_artefact_round_trip_predicts_what_scikit_learn_predicts(fitted, dataset, tmp_path):
@@ -193,7 +209,8 @@ def test_a_patient_imaged_at_end_diastole_is_unloaded_and_gets_its_anatomys_maps
     assert patient.heart.geometry.as_tuple() == pytest.approx(unloaded.as_tuple(), rel=1e-9)
     assert patient.heart.lo == anatomy.from_geometry(patient.heart.geometry, fitted).lo
     maps = patient.anatomy["maps"]
-    assert maps["source"] == "regression" and set(maps["sd"]) == set(regression.OUTPUTS) and all(v > 0 for v in maps["sd"].values())
+    assert maps["source"] == "regression" and set(maps["sd"]) == set(regression.OUTPUTS)
+    assert maps["sd"]["alpha"] == 0.0 and all(v > 0 for k, v in maps["sd"].items() if k != "alpha")
     assert patient.anatomy["unloading"] == {"imaged": dataclasses.asdict(imaged), "how": {"strain": 0.12}, "strain": 0.12}
     assert Patient.from_json(patient.to_json()) == patient
     # by the end-diastolic pressure: the unloaded shape's predicted passive curve reaches the imaged volume
