@@ -45,7 +45,7 @@ from lvenv.params import CellParams, LOParams
 from lvenv.trained import DATA, TrainedLO
 from lvenv.validation import InputError, integer, real
 
-__all__ = ["ARTEFACT", "ARTEFACT_ENV", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "from_geometry", "map_draws", "unload", "inflate", "unload_to_volume"]
+__all__ = ["ARTEFACT", "ARTEFACT_ENV", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "load_regression", "from_geometry", "predicted_maps", "map_draws", "unload", "inflate", "unload_to_volume"]
 
 ARTEFACT = DATA / "anatomy" / "regression.json"
 FORMAT_VERSION = 1
@@ -182,7 +182,7 @@ def _loaded(path: str) -> Regression:
     return Regression.load(path)
 
 
-def _regression(regression: Regression | str | pathlib.Path | None) -> Regression:
+def load_regression(regression: Regression | str | pathlib.Path | None = None) -> Regression:
     """``regression`` itself, the artefact at a path, or (None) the one :data:`ARTEFACT_ENV`
     names if set, else the shipped :data:`ARTEFACT`; loaded once per path."""
     if isinstance(regression, Regression):
@@ -208,7 +208,7 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
     """
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
-    regression = _regression(regression)
+    regression = load_regression(regression)
     missing = [n for n in LO_OUTPUTS if n not in regression.outputs]
     if missing:
         raise InputError(f"the regression does not predict {missing}; it predicts {list(regression.outputs)}")
@@ -233,13 +233,22 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
     return TrainedLO(geometry, lo, CellParams() if cell is None else cell, {"C": c}, None, math.nan, provenance)
 
 
+def predicted_maps(geometry: Geometry, regression: Regression | str | pathlib.Path | None = None) -> tuple[LOParams, dict[str, Any]]:
+    """The regression's LO maps of ``geometry`` (:func:`from_geometry`, warnings and all) and
+    what a patient record keeps of them (:attr:`lvenv.patients.Patient.anatomy` ``["maps"]``):
+    the source, the predicted C, every output's predictive sd and the outside-box and clipping notes."""
+    trained = from_geometry(geometry, regression)
+    return trained.lo, {"source": "regression", "C": trained.congruency["C"],
+                        **{k: trained.provenance[k] for k in ("sd", "outside_box", "clipped", "training_anatomies")}}
+
+
 def map_draws(geometry: Geometry, n: int, *, seed: int = 0, regression: Regression | str | pathlib.Path | None = None) -> list[LOParams]:
     """``n`` draws of the LO maps of ``geometry`` from the regression's predictive distribution:
     each parameter normal with its GP's mean and sd (one GP per parameter, so independent),
     clipped to its allowed range. Refitting a patient at each draw carries the maps'
     uncertainty into the fitted parameters."""
     n, seed = integer("n", n, 1, 10_000), integer("seed", seed, 0)
-    regression = _regression(regression)
+    regression = load_regression(regression)
     with warnings.catch_warnings():  # from_geometry's own call warns, not each draw
         warnings.simplefilter("ignore", ExtrapolationWarning)
         mean, sd = regression.predict([geometry], LO_OUTPUTS)
@@ -334,7 +343,7 @@ def unload_to_volume(end_diastolic: Geometry, edp: float, regression: Regression
         raise InputError(f"end_diastolic must be an lvenv.geometry.Geometry, got {type(end_diastolic).__name__}")
     edp = real("edp", edp, 0.0, 10.0)
     if lo is None:
-        regression = _regression(regression)
+        regression = load_regression(regression)
     edv = cavity_volume(end_diastolic)
 
     def maps(g: Geometry) -> LOParams:

@@ -340,6 +340,17 @@ def _refining(done: int, total: int, name: str) -> None:
         _err.print(f"refining {name} by MCMC ({done + 1} of {total}; about 100 s each on 2 cores)", markup=False)
 
 
+def _map_table(spread: dict, fitted: dict[str, float]) -> Table:
+    """The fit's parameters beside their spread over the refits at map draws (optim.map_uncertainty)."""
+    table = Table(title=f"uncertainty from the maps: {spread['usable']} of {spread['draws']} refits at draws of the anatomy regression's maps",
+                  title_justify="left")
+    for col in ("parameter", "fit", "sd over draws", "90 % of draws", "sd (% of fit)"):
+        table.add_column(col, justify="right")
+    for name, s in spread["summary"].items():
+        table.add_row(name, f"{fitted[name]:.4g}", f"{s['sd']:.3g}", f"{s['q05']:.4g}–{s['q95']:.4g}", f"{100 * s['sd'] / abs(fitted[name]):.1f}")
+    return table
+
+
 def _posterior_payload(identified) -> dict:
     """JSON of one :class:`optim.amortised.Identified` (internal units)."""
     post = identified.posterior
@@ -377,6 +388,9 @@ def _posterior_table(identified) -> Table:
 @click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
 @click.option("--report", "report_dir", type=click.Path(file_okay=False), default=None, callback=_writable_folder,
               help="write the identifiability report at the fit to this folder: profiles, posterior, markdown and PNG (minutes)")
+@click.option("--map-draws", type=click.IntRange(min=0, max=1000), default=0, show_default=True,
+              help="refit at this many draws of the LO maps from the anatomy regression (a record with \"lo\": \"regression\") "
+                   "and report the spread they give each parameter (optim.map_uncertainty)")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
 @click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
@@ -384,14 +398,21 @@ def _posterior_table(identified) -> Table:
               help="write the best mismatch against evaluations (.png or .pdf)")
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
-def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, plausibility, identifiability, report_dir, fidelity, fidelity_mesh,
-                plot_path, convergence_path, posterior, n_samples, refine, as_json) -> int:
-    """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets."""
+def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, plausibility, identifiability, report_dir, map_draws,
+                fidelity, fidelity_mesh, plot_path, convergence_path, posterior, n_samples, refine, as_json) -> int:
+    """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets.
+    A record may give an imaged geometry to unload and take its maps from the anatomy regression
+    (lvenv.patients); --map-draws then carries the maps' uncertainty into the fit."""
     from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
     from optim.minimize import minimize
 
     n_samples = _check_posterior_options(posterior, n_samples, refine)
     record = _patient_arg(patient)
+    if map_draws == 1:
+        raise click.UsageError("--map-draws needs at least 2 draws (0: no refits)")
+    if map_draws and record.anatomy.get("maps", {}).get("source") != "regression":
+        raise click.UsageError(f"--map-draws: the maps of {record.name!r} do not come from the anatomy regression; "
+                               "give its record \"lo\": \"regression\"")
     if method == "lm":
         from optim.lm import fit_lm
 
@@ -433,6 +454,12 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         with _working("profiles and posterior for the identifiability report"):
             _save(unsaved, "--report", report_dir, lambda: payload.update(report=str(write_report(
                 record, res.parameters, res.observation, report_dir, options=options, posterior_options={"plausibility": plausibility, "seed": seed}))))
+    if map_draws and ok:
+        from optim.map_uncertainty import refit
+
+        with _working(f"refitting at {map_draws} draws of the maps"):
+            spread = refit(record, res.parameters, map_draws, seed=seed, steps_per_beat=max(steps_per_beat, 1000), plausibility=plausibility)
+        payload["map_uncertainty"] = spread.to_dict()
     if posterior is not None:
         from optim.amortised import identify_patients
 
@@ -470,6 +497,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         out.print("singular values of the noise-scaled sensitivity (optim.identify; χ per unit-cube step): " + ", ".join(f"{v:.3g}" for v in ident["singular_values"]))
         for j, direction in enumerate(ident["null_directions"]):
             out.print(f"null direction {j + 1} (targets unchanged to first order): " + ", ".join(f"{n} {v:+.2f}" for n, v in direction.items()))
+    if "map_uncertainty" in payload:
+        out.print(_map_table(payload["map_uncertainty"], res.parameters))
     if posterior is not None:
         out.print(_posterior_table(identified))
     if "report" in payload:
@@ -492,17 +521,21 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 @click.option("--seed", type=click.IntRange(min=0), default=None)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Dask LocalCluster processes (1: this process only)")
 @click.option("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (e.g. tcp://host:8786) to split the cohort over")
+@click.option("--maps", type=click.Choice(("regression", "base")), default="regression", show_default=True,
+              help="LO maps of a row with geometry columns: its anatomy's, from the anatomy regression, or the base heart's")
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
-def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, posterior, n_samples, refine, as_json) -> int:
+def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, maps, posterior, n_samples, refine, as_json) -> int:
     """Fit every echo report of the CSV REPORTS (columns: id, EF_pct, ET_ms, IVRT_ms, SBP_mmHg,
-    DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out. With
+    DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out. A row
+    with geometry columns (Rb_mm ... C0_deg, unloaded) is fitted with its anatomy's LO maps
+    (--maps; the output's maps column says which). With
     --posterior amortised each row also gets every parameter's posterior median and 90 % interval
     (<column>_post_median, _post_q05, _post_q95) and its flag (post_ood, post_ood_reason)."""
     from optim.cohort import CohortOptions, PosteriorOptions, run_cohort
 
     n_samples = _check_posterior_options(posterior, n_samples, refine)
-    given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed}
+    given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed, "maps": maps}
     options = CohortOptions(**{k: v for k, v in given.items() if v is not None})
     posterior_options = None if posterior is None else PosteriorOptions(n_samples, refine, options.seed, {"plausibility": options.plausibility})
 

@@ -195,7 +195,9 @@ class Patient:
             maps = None if record.get("lo") == "regression" else parts.get("lo", LOParams())  # None: the regression's, at each trial shape
             parts["geometry"], anatomy["unloading"] = _unloaded(parts["geometry"], record["unload"], maps)
         if record.get("lo") == "regression":
-            parts["lo"], anatomy["maps"] = _predicted_maps(parts["geometry"])
+            from lvenv.anatomy import predicted_maps
+
+            parts["lo"], anatomy["maps"] = predicted_maps(parts["geometry"])
         return cls(
             name=record["name"],
             heart=Heart(**parts),
@@ -247,16 +249,6 @@ def _unloaded(imaged: Geometry, spec: Any, lo: LOParams | None) -> tuple[Geometr
     else:
         unloaded, strain = unload_to_volume(imaged, real("patient.unload.edp", value, 0.0, 10.0), lo=lo)
     return unloaded, {"imaged": dataclasses.asdict(imaged), "how": dict(spec), "strain": strain}
-
-
-def _predicted_maps(geometry: Geometry) -> tuple[LOParams, dict[str, Any]]:
-    """The anatomy regression's LO maps of ``geometry`` and their predictive sd, outside-box and
-    clipping notes, for :attr:`Patient.anatomy`."""
-    from lvenv.anatomy import from_geometry
-
-    trained = from_geometry(geometry)
-    return trained.lo, {"source": "regression", "C": trained.congruency["C"],
-                        **{k: trained.provenance[k] for k in ("sd", "outside_box", "clipped", "training_anatomies")}}
 
 
 def _number(value: Any, where: str) -> float:

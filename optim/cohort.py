@@ -23,7 +23,13 @@ and the central systolic pressure is left free (reported as ``fit_SBP_central_mm
 
 The heart: the base heart (``presets.normal()``, the trained LO maps) at the row's heart rate,
 which is a per-member parameter of the LO heart (the beat period is 60 / HR), and with the row's
-geometry where given; the fitted parameters are :data:`lvenv.identification.DEFAULT_ACTION_PARAMS`
+geometry where given (the unloaded shape, as :class:`lvenv.geometry.Geometry` has it). A row
+with a geometry gets the LO maps of its own anatomy from the anatomy regression
+(:func:`lvenv.anatomy.predicted_maps`; ``CohortOptions.maps = "regression"``, the default), or
+keeps the base heart's (``"base"``); the output's ``maps`` column says which, with any
+extrapolation of the regression (a geometry outside its sampled box) or clipped parameter.
+Without an artefact to load (:data:`lvenv.anatomy.ARTEFACT_ENV` naming a missing file) the
+regression choice is refused before any fit. The fitted parameters are :data:`lvenv.identification.DEFAULT_ACTION_PARAMS`
 (τ2, Sa, R2, R3, C, Cat) inside their identification bounds.
 
 Fitting (:func:`fit_reports`): ``slots`` patients at a time, each with ``candidates`` members of
@@ -50,8 +56,8 @@ the fitted parameters (internal units, in the column names), ``mismatch`` (weigh
 error over the row's targets, a fraction), ``mismatch_<target>`` (abs(relative error) per target),
 the model's values at the fit (``fit_<column>``), the unmeasured filling pressures
 ``fit_EDP_mmHg`` and ``fit_P_at_mean_mmHg`` (kept within 4–25 mmHg by the objective's
-plausibility bands unless ``CohortOptions.plausibility`` is False), ``evaluations``, ``stop``, ``status`` and the
-input ``line``. Rows are written as patients finish; failed values are empty cells, never zeros.
+plausibility bands unless ``CohortOptions.plausibility`` is False), ``evaluations``, ``stop``, ``status``,
+``maps`` and the input ``line``. Rows are written as patients finish; failed values are empty cells, never zeros.
 
 Posterior (``posterior=PosteriorOptions()``, ``lvenv cohort --posterior amortised``): before the
 fits, every pending row's amortised posterior (:func:`optim.amortised.identify_patients`, one
@@ -81,6 +87,7 @@ import json
 import math
 import os
 import time
+import warnings
 import zlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -89,6 +96,7 @@ from typing import Any
 import numpy as np
 
 from lvenv import archive, presets
+from lvenv.anatomy import ExtrapolationWarning, Regression, load_regression, predicted_maps
 from lvenv.env.core import ENV_SCHEME
 from lvenv.env.vector import info_metrics
 from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
@@ -105,7 +113,7 @@ from optim.fit import make_env
 from optim.minimize import unit_bounds
 
 __all__ = [
-    "FORM_FACTOR", "REQUIRED", "TARGETS", "GEOMETRY_COLUMNS", "CohortOptions", "Report", "BadRow",
+    "FORM_FACTOR", "REQUIRED", "TARGETS", "GEOMETRY_COLUMNS", "MAPS", "maps_label", "CohortOptions", "Report", "BadRow",
     "Reports", "read_reports", "cuff_targets", "cuff_from_central", "parameter_column", "output_columns",
     "fit_reports", "run_cohort", "summarise", "distribution", "patient_seed", "CohortError", "PosteriorOptions", "posterior_columns",
 ]
@@ -144,6 +152,8 @@ _CUFF = ("DBP", "MAP")
 
 #: Optional geometry columns → :class:`lvenv.geometry.Geometry` fields.
 GEOMETRY_COLUMNS = {"Rb_mm": "Rb", "L_mm": "L", "Z_mm": "Z", "H_mm": "H", "e": "e", "C0_deg": "C0"}
+#: Where a row with a geometry takes its LO maps from (module docstring).
+MAPS = ("regression", "base")
 _KNOWN = set(REQUIRED) | {"EDV_ml", "ESV_ml"} | set(GEOMETRY_COLUMNS) | {f"w_{t.label}" for t in TARGETS}
 
 
@@ -221,9 +231,17 @@ def _display_range(column: str, value: float, metric: Metric) -> None:
     real(column, value, lo, hi, lo_open=True)
 
 
-def _patient(row: Mapping[str, str], base: Heart) -> Patient:
+def _in_columns(message: str) -> str:
+    """A message about `Geometry` fields in the CSV's column names (the same mm and degrees)."""
+    for column, field in GEOMETRY_COLUMNS.items():
+        message = message.replace(f"geometry.{field} ", f"{column} ")
+    return message
+
+
+def _patient(row: Mapping[str, str], base: Heart, regression: Regression | None = None) -> Patient:
     """The patient of one report row (module docstring); InputError naming the column, in the
-    CSV's own units, on bad input."""
+    CSV's own units, on bad input. ``regression``: the anatomy regression that gives a row with a
+    geometry its maps (None: the base heart's)."""
     v = {c: _value(row, c, c in REQUIRED) for c in (*REQUIRED[1:], "EDV_ml", "ESV_ml")}
     if not EF_MIN * 100.0 < v["EF_pct"] <= 100.0:
         raise InputError(f"EF_pct = {v['EF_pct']:g} must lie in ({100 * EF_MIN:g}, 100] (a percentage; 0.6 would be 0.6 %)")
@@ -254,16 +272,28 @@ def _patient(row: Mapping[str, str], base: Heart) -> Patient:
         raise InputError(f"{', '.join(f'w_{t.label}' for t in TARGETS if t.obs in weights)} are all zero: at least one target needs a positive weight")
     geometry = {field: _value(row, column, False) for column, field in GEOMETRY_COLUMNS.items()}
     heart = base.replace(HR=v["HR_bpm"])
+    anatomy = {}
     if any(g is not None for g in geometry.values()):
         try:
             shape = dataclasses.replace(base.geometry, **{k: g for k, g in geometry.items() if g is not None})
-        except InputError as err:  # the geometry's fields are the columns' (mm, deg) under other names
-            message = str(err)
-            for column, field in GEOMETRY_COLUMNS.items():
-                message = message.replace(f"geometry.{field} ", f"{column} ")
-            raise InputError(message) from None
+        except InputError as err:
+            raise InputError(_in_columns(str(err))) from None
         heart = dataclasses.replace(heart, geometry=shape)
-    return Patient(str(row["id"]).strip(), heart, targets, weights)
+        if regression is not None:
+            with warnings.catch_warnings():  # the row's `maps` cell reports them
+                warnings.simplefilter("ignore", ExtrapolationWarning)
+                lo, anatomy["maps"] = predicted_maps(shape, regression)
+            heart = dataclasses.replace(heart, lo=lo)
+    return Patient(str(row["id"]).strip(), heart, targets, weights, anatomy)
+
+
+def maps_label(patient: Patient) -> str:
+    """The output's ``maps`` cell: ``base``, or ``regression`` with any extrapolation (CSV units)."""
+    note = patient.anatomy.get("maps")
+    if not note:
+        return "base"
+    flags = [_in_columns(m) for m in (*note["outside_box"], *note["clipped"])]
+    return "regression" + (f" ({'; '.join(flags)})" if flags else "")
 
 
 def _text(path: Path) -> str:
@@ -295,10 +325,12 @@ def _separator_hint(path: Path, header: str) -> str:
     return ""
 
 
-def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Reports:
+def read_reports(path: str | os.PathLike[str], base: Heart | None = None, maps: str = "regression") -> Reports:
     """Parse a report CSV (module docstring). A file without a required column raises
-    :class:`CohortError` naming the missing columns; a bad row is listed in ``bad``."""
+    :class:`CohortError` naming the missing columns; a bad row is listed in ``bad``. ``maps``:
+    where a row with a geometry takes its LO maps from (:data:`MAPS`)."""
     base = presets.normal() if base is None else base
+    maps = choice("maps", maps, MAPS)
     path = Path(path)
     text = _text(path)
     with io.StringIO(text, newline="") as handle:
@@ -316,6 +348,13 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Rep
         extra_columns = [c for c in columns if c not in _KNOWN]
         if clash := sorted(set(extra_columns) & set(output_columns((), posterior=True))):
             raise CohortError(f"{str(path)!r} has the column(s) {clash}, which the output writes itself; rename them")
+        regression = None
+        if maps == "regression" and set(columns) & set(GEOMETRY_COLUMNS):
+            try:
+                regression = load_regression()
+            except InputError as err:
+                raise CohortError(f"{str(path)!r} has geometry columns, whose maps come from the anatomy regression: {err}; "
+                                  "or fit them with the base heart's maps (maps = 'base', `lvenv cohort --maps base`)") from None
         rows, bad, seen = [], [], {}
         for row in _rows_of(reader, path, bad):
             line = reader.line_num
@@ -329,7 +368,7 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None) -> Rep
                     raise InputError("id is missing")
                 if rid in seen:
                     raise InputError(f"id {rid!r} repeats the row on line {seen[rid]}")
-                patient = _patient(row, base)
+                patient = _patient(row, base, regression)
             except (InputError, ValueError) as err:
                 bad.append(BadRow(line, rid, str(err)))
                 continue
@@ -368,6 +407,7 @@ class CohortOptions:
     confirm_steps: int = 10  # env steps to confirm the best point's steady state, at most
     rtol: float = 1e-4  # steady-state criterion (lvenv.simulate)
     plausibility: bool = True  # the filling-pressure bands in the objective (lvenv.plausibility)
+    maps: str = "regression"  # a row with a geometry: its anatomy's maps ("regression") or the base heart's ("base")
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -383,6 +423,7 @@ class CohortOptions:
         real("rtol", self.rtol, 0.0, 1.0, lo_open=True)
         if not isinstance(self.plausibility, bool):
             raise InputError(f"plausibility = {self.plausibility!r} must be True or False")
+        choice("maps", self.maps, MAPS)
         integer("seed", self.seed, 0)
 
     def to_dict(self) -> dict[str, Any]:
@@ -479,6 +520,7 @@ class _Fit:
             "evaluations": self.opt.evaluations,
             "stop": self.stop or "failed",
             "status": status,
+            "maps": maps_label(patient),
         }
 
 
@@ -552,7 +594,7 @@ def output_columns(extra_columns: Sequence[str], posterior: bool = False) -> lis
     return [
         "id", *extra_columns, *(parameter_column(n) for n in DEFAULT_ACTION_PARAMS), "mismatch",
         *(f"mismatch_{t.label}" for t in TARGETS), *(f"fit_{t.column}" for t in TARGETS), "fit_SBP_central_mmHg",
-        *(f"fit_{m}_mmHg" for m in _FILLING), "evaluations", "stop", "status", *(posterior_columns() if posterior else ()), "line",
+        *(f"fit_{m}_mmHg" for m in _FILLING), "evaluations", "stop", "status", "maps", *(posterior_columns() if posterior else ()), "line",
     ]
 
 
@@ -615,7 +657,7 @@ def _row(result: Mapping[str, Any]) -> dict[str, str]:
         row[f"fit_{t.column}"] = _cell(t.metric.to_display(obs[t.obs]))
     row["fit_SBP_central_mmHg"] = _cell(METRICS["P_ao_sys"].to_display(obs["P_ao_sys"]))
     row.update({f"fit_{m}_mmHg": _cell(METRICS[m].to_display(obs[m])) for m in _FILLING})
-    row.update(evaluations=str(result["evaluations"]), stop=result["stop"], status=result["status"], line=str(result["line"]))
+    row.update(evaluations=str(result["evaluations"]), stop=result["stop"], status=result["status"], maps=result["maps"], line=str(result["line"]))
     return row
 
 
@@ -704,7 +746,7 @@ def run_cohort(
     workers = integer("workers", workers, 1)
     start = time.perf_counter()
     reports_path, out = Path(reports_path), Path(out_path)
-    parsed = read_reports(reports_path)
+    parsed = read_reports(reports_path, maps=options.maps)
     if on_bad is not None:
         for bad in parsed.bad:
             on_bad(bad)

@@ -38,6 +38,9 @@ def test_help_of_every_command_works(argv, capsys):
         (["frobnicate"], "frobnicate"),
         (["fit", "normal", "--refine"], "--refine applies to a posterior: give --posterior amortised"),
         (["fit", "normal", "--samples", "100"], "--samples applies to a posterior"),
+        (["fit", "normal", "--map-draws", "4"], "the maps of 'normal' do not come from the anatomy regression"),
+        (["fit", "normal", "--map-draws", "1"], "--map-draws needs at least 2 draws"),
+        (["cohort", "r.csv", "--out", "o.csv", "--maps", "gp"], "'gp' is not one of"),
         (["fit", "normal", "--posterior", "mcmc"], "'mcmc' is not 'amortised'"),
     ],
 )

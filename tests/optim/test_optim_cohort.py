@@ -57,6 +57,34 @@ def test_good_rows_become_patients_with_the_report_targets_and_heart_rate(tmp_pa
     assert float(a.patient.heart.circulation.HR) == 64.0 and float(b.patient.heart.circulation.HR) == 88.0
 
 
+def test_a_row_with_a_geometry_gets_its_anatomys_maps_unless_told_to_keep_the_base_ones(tmp_path, monkeypatch):
+    """The maps come from the anatomy regression (the shipped artefact) for rows with geometry
+    columns, the output's maps cell says so and names an extrapolated column; --maps base keeps
+    the base heart's; an artefact that cannot be loaded is refused before any fit."""
+    from lvenv import presets
+    from lvenv.anatomy import ARTEFACT_ENV, from_geometry
+
+    base = presets.normal()
+    header = [*HEADER, "Rb_mm", "L_mm"]
+    path = _write(tmp_path / "r.csv", [[*GOOD, "40", "12"], ["B", *GOOD[1:], "60", ""], ["C", *GOOD[1:], "", ""]], header)
+    a, b, c = read_reports(path).rows
+    assert (a.patient.heart.geometry.Rb, a.patient.heart.geometry.L, a.patient.heart.geometry.Z) == (40.0, 12.0, base.geometry.Z)
+    assert a.patient.heart.lo == from_geometry(a.patient.heart.geometry).lo != base.lo
+    assert cohort.maps_label(a.patient) == "regression"
+    assert cohort.maps_label(b.patient).startswith("regression (Rb_mm = 60 outside the sampled range")
+    assert c.patient.heart.lo == base.lo and cohort.maps_label(c.patient) == "base"
+    assert all(r.patient.heart.lo == base.lo and cohort.maps_label(r.patient) == "base" for r in read_reports(path, maps="base").rows)
+    (result,) = fit_reports([a], dataclasses.replace(SMALL, budget=8))
+    assert result["maps"] == cohort._row(result)["maps"] == "regression" and "maps" in cohort.output_columns([])
+    monkeypatch.setenv(ARTEFACT_ENV, str(tmp_path / "absent.json"))
+    with pytest.raises(CohortError, match=r"has geometry columns.*absent.json.*--maps base"):
+        read_reports(path)
+    assert len(read_reports(path, maps="base").rows) == 3
+    with pytest.raises(CohortError, match=r"has geometry columns"):
+        run_cohort(path, tmp_path / "out.csv", SMALL)
+    assert not (tmp_path / "out.csv").exists()
+
+
 BAD = [
     (["C", "58", "", "85", "124", "78", "64", "x"], "ET_ms is missing"),
     (["D", "58", "290", "85", "high", "78", "64", "x"], "SBP_mmHg = 'high' is not a number"),

@@ -233,3 +233,29 @@ def test_a_patient_imaged_at_end_diastole_is_unloaded_and_gets_its_anatomys_maps
     with pytest.raises(InputError, match=ARTEFACT_ENV):
         Patient.from_dict(record)
     assert presets.N_UNLOADED == Patient.from_dict({**record, "geometry": dataclasses.asdict(presets.N_UNLOADED), "unload": None, "lo": None}).heart.geometry
+
+
+def test_refits_at_map_draws_carry_the_maps_uncertainty_into_the_fitted_parameters(fitted, tmp_path, monkeypatch):
+    """`lvenv fit --map-draws`: a record with the regression's maps, fitted by least squares, then
+    refitted from that fit at draws of its maps. Every refit reaches the targets again; the control
+    (the predicted maps) stays at the fit; the draws move the parameters."""
+    from lvenv.anatomy import ARTEFACT_ENV
+    from lvenv.patients import Patient, builtin
+    from optim.lm import fit_lm
+    from optim.map_uncertainty import refit
+
+    monkeypatch.setenv(ARTEFACT_ENV, str(regression.save(fitted, tmp_path / "regression.json")))
+    patient = Patient.from_dict({**builtin("normal").to_dict(), "lo": "regression"})
+    first = fit_lm(patient, budget=24, starts=1, steps_per_beat=500)
+    assert first.mismatch < 1e-6
+    seen = []
+    spread = refit(patient, first.parameters, 3, budget=10, steps_per_beat=500, regression=fitted, progress=lambda d, t: seen.append((d, t)))
+    assert seen == [(1, 4), (2, 4), (3, 4), (4, 4)] and spread.usable == 3
+    assert np.all(spread.mismatch < 1e-4) and spread.control_mismatch < 1e-6
+    assert spread.control == pytest.approx(first.parameters, rel=1e-6)
+    summary = spread.summary()
+    for name, values in spread.parameters.items():
+        assert summary[name]["sd"] == pytest.approx(np.std(values, ddof=1))
+    assert summary["Sa"]["sd"] > 0 and len(set(spread.parameters["Sa"])) == 3
+    with pytest.raises(InputError, match="do not come from the anatomy regression"):
+        refit(builtin("normal"), first.parameters, 3)
