@@ -461,7 +461,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
             spread = refit(record, res.parameters, map_draws, seed=seed, steps_per_beat=max(steps_per_beat, 1000), plausibility=plausibility)
         payload["map_uncertainty"] = spread.to_dict()
     if posterior is not None:
-        from optim.amortised import identify_patients
+        from optim.identify import identify_patients
 
         with _working("amortised posterior"):
             identified = identify_patients([record], n_samples, seed=seed, refine=refine, mcmc_options={"plausibility": plausibility}, progress=_refining)[0]
@@ -708,8 +708,9 @@ def bench_command(name, args) -> int:
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, callback=_writable_file, help="the report [default: ROOT/report/report.md]")
 @click.option("--json", "as_json", is_flag=True, help="print the report's path as JSON")
 def report_command(root, out_path, as_json) -> int:
-    """Rebuild one markdown report of every experiment (congruency, generalisation, multi-element,
-    inverse problem, cohort, performance) from cached results; nothing is recomputed."""
+    """Rebuild one markdown report of every experiment (training, generalisation, multi-element,
+    inverse problem, calibration, benchmarks, anatomy: optim.report.SECTIONS) from the results the
+    scripts left under ROOT; nothing is recomputed."""
     from optim.report import build_report
 
     path = build_report(root, out_path)

@@ -76,10 +76,12 @@ from lvenv.params import Heart
 from lvenv.patients import Patient
 from lvenv.plausibility import resolve as resolve_bands
 from lvenv.validation import InputError, integer, real
+from optim.identify.density import prior_sample
+from optim.identify.noise import NOISE, Relative, measurement_sd
 
 __all__ = ["OBSERVED", "GEOMETRY", "CONDITION", "BASES", "HEART_RATE", "MISSING", "OOD_QUANTILE", "OOD_COMPONENTS", "OOD_FIT_ROWS", "FORMAT", "VERSION",
            "DEFAULT_ARTEFACT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "train", "save", "load", "base_index", "observations",
-           "Identified", "identify_patients", "HELD_OUT_TARGETS", "held_out_patients"]
+           "HELD_OUT_TARGETS", "held_out_patients"]
 
 #: The targets the estimator conditions on (internal units: EF fraction, times s, pressures kPa).
 OBSERVED = ("EF", "ET", "IVRT", "P_ao_dia", "P_ao_mean", "P_ao_pulse")
@@ -180,14 +182,12 @@ def simulate(n: int, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, f
     prior (:func:`optim.identify.prior_sample`), each heart one of ``bases`` at a heart rate
     uniform in ``heart_rate`` (1/min), simulated ``batch`` at a time; failed members are left out
     and counted by status (``PriorSample.left_out``)."""
-    from optim.identify import prior_sample
 
     return prior_sample(n, training_patients(bases), heart_rate=heart_rate, seed=seed, batch=batch)
 
 
 def _noise_sd(noise: Mapping[str, Any]) -> np.ndarray:
     """σ of each :data:`OBSERVED` target (internal units); relative errors are not supported."""
-    from optim.identify import Relative, measurement_sd
 
     relative = [k for k in OBSERVED if isinstance(noise.get(k), Relative)]
     if relative:
@@ -434,7 +434,6 @@ def train(
     the metadata (default: lvenv's version and git commit, where known)."""
     from sklearn.mixture import GaussianMixture
 
-    from optim.identify import NOISE
 
     if tuple(draws.names) != OBSERVED:
         raise InputError(f"the draws observe {draws.names}; the estimator needs {OBSERVED}")
@@ -555,7 +554,6 @@ def save(estimator: Estimator, path: str | pathlib.Path) -> pathlib.Path:
 def load(path: str | pathlib.Path = DEFAULT_ARTEFACT) -> Estimator:
     """The estimator stored at ``path`` (default: the shipped one), checked against this code
     (module docstring); :class:`lvenv.archive.ArchiveError` saying what is wrong otherwise."""
-    from optim.identify import NOISE
 
     path = pathlib.Path(path)
     if not path.exists():
@@ -608,7 +606,6 @@ def held_out_patients(estimator: Estimator, n: int, seed: int, targets: Sequence
     Returns the patients, their true parameters (m, 6; physical units, columns
     :data:`DEFAULT_ACTION_PARAMS`) and how many truths were skipped because the noise pushed a
     target outside its metric's range."""
-    from optim.identify import NOISE, measurement_sd
 
     draws = simulate(n, bases=estimator.bases, heart_rate=estimator.heart_rate, seed=seed + 1000, batch=128)
     sigma = measurement_sd(dict.fromkeys(OBSERVED, 1.0), NOISE)
@@ -623,72 +620,6 @@ def held_out_patients(estimator: Estimator, n: int, seed: int, targets: Sequence
             continue
         truths.append(draws.parameters[j])
     return patients, np.array(truths).reshape(-1, len(DEFAULT_ACTION_PARAMS)), len(noisy) - len(patients)
-
-
-@dataclasses.dataclass(frozen=True)
-class Identified:
-    """One patient's posterior as :func:`identify_patients` reports it.
-
-    ``posterior``: the amortised one (``sampler="amortised"``), the MCMC one where ``refined``,
-    or None for a patient the estimator does not cover and that was not refined. ``flag``: why
-    the amortised answer is not to be trusted (outside the training distribution, or not covered
-    by the estimator at all); ``""`` when it is. A refined patient keeps its flag."""
-
-    patient: str
-    posterior: Any  # optim.identify.Posterior | None
-    flag: str
-    refined: bool
-
-
-def identify_patients(
-    patients: Sequence[Patient],
-    n_samples: int = 1000,
-    *,
-    seed: int = 0,
-    estimator: Estimator | str | pathlib.Path | None = None,
-    refine: bool = False,
-    mcmc_options: Mapping[str, Any] | None = None,
-    progress: Any = None,
-) -> list[Identified]:
-    """The amortised posterior of every patient (:func:`optim.identify.amortised`, one batched
-    pass), and with ``refine`` the MCMC posterior (:func:`optim.identify.posterior`, keywords
-    ``mcmc_options``) of each flagged one instead.
-
-    A patient the estimator does not cover (a target it does not condition on, such as EDV, or a
-    heart that is none of its base presets) is flagged with the reason rather than refused, so
-    one such patient never stops a cohort. MCMC starts from the amortised median where there is
-    one (:func:`optim.identify.posterior` takes one start point, its walkers start in a small
-    ball around it), else from the patient's own values. ``progress(done, total, name)`` is
-    called before each MCMC run (about 100 s each on 2 cores). One :class:`Identified` per
-    patient, in order."""
-    from optim import identify
-
-    patients = list(patients)
-    if not isinstance(estimator, Estimator):
-        estimator = load(DEFAULT_ARTEFACT if estimator is None else estimator)
-    covered, flags = [], [""] * len(patients)
-    for j, p in enumerate(patients):
-        try:
-            observations(p)
-            base_index(p.heart, estimator.bases)
-            covered.append(j)
-        except InputError as err:
-            flags[j] = f"not covered by the amortised estimator: {err}"
-    posteriors: list[Any] = [None] * len(patients)
-    if covered:
-        for j, post in zip(covered, identify.amortised([patients[j] for j in covered], n_samples, seed=seed, estimator=estimator)):
-            posteriors[j], flags[j] = post, post.out_of_distribution
-    refined = [False] * len(patients)
-    if refine:
-        todo = [j for j, f in enumerate(flags) if f]
-        for done, j in enumerate(todo):
-            if progress is not None:
-                progress(done, len(todo), patients[j].name)
-            start = None if posteriors[j] is None else posteriors[j].median
-            posteriors[j] = dataclasses.replace(identify.posterior(patients[j], start=start, seed=seed, **dict(mcmc_options or {})),
-                                                out_of_distribution=flags[j])
-            refined[j] = True
-    return [Identified(p.name, post, flag, r) for p, post, flag, r in zip(patients, posteriors, flags, refined)]
 
 
 def _json_equal(a: Any, b: Any) -> bool:

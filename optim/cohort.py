@@ -60,7 +60,7 @@ plausibility bands unless ``CohortOptions.plausibility`` is False), ``evaluation
 ``maps`` and the input ``line``. Rows are written as patients finish; failed values are empty cells, never zeros.
 
 Posterior (``posterior=PosteriorOptions()``, ``lvenv cohort --posterior amortised``): before the
-fits, every pending row's amortised posterior (:func:`optim.amortised.identify_patients`, one
+fits, every pending row's amortised posterior (:func:`optim.identify.identify_patients`, one
 batched pass) adds, per fitted parameter, ``<column>_post_median``, ``<column>_post_q05`` and
 ``<column>_post_q95`` (``<column>`` its fitted column, e.g. ``tau2_s_post_median``: the median
 and the 90 % equal-tailed interval, internal units), then ``post_sampler`` (``amortised``, or
@@ -542,7 +542,7 @@ def fit_reports(reports: Sequence[Report], options: CohortOptions | None = None,
     venv = make_env([r.patient for r in reports[:slots] for _ in range(lam)], slots * lam, options.steps_per_beat, options.max_beats, options.rtol, options.scheme,
                     options.plausibility)
     env = venv.unwrapped
-    env.reset(seed=0)
+    env.start_cold()  # every member gets its patient below, before the first step
     fits: list[_Fit | None] = [None] * slots
     actions = np.repeat(space.from_unit(np.full((1, space.dimension), 0.5)), slots * lam, axis=0)
     results: list[dict[str, Any]] = []
@@ -630,7 +630,7 @@ class PosteriorOptions:
 
 
 def _posterior_cells(identified: Any) -> dict[str, str]:
-    """The posterior columns of one row from its :class:`optim.amortised.Identified`."""
+    """The posterior columns of one row from its :class:`optim.identify.Identified`."""
     post = identified.posterior
     row = {}
     for n in DEFAULT_ACTION_PARAMS:
@@ -768,7 +768,7 @@ def run_cohort(
     pending = [r for r in parsed.rows if r.id not in done]
     identified = {}
     if posterior is not None and pending:
-        from optim.amortised import identify_patients
+        from optim.identify import identify_patients
 
         answers = identify_patients([r.patient for r in pending], posterior.n_samples, seed=posterior.seed, refine=posterior.refine,
                                     mcmc_options=posterior.mcmc, progress=posterior_progress)

@@ -75,7 +75,7 @@ def print_posteriors(patients, n_samples: int, seed: int) -> None:
     """Each patient's amortised posterior (median [5 %, 95 %]; tau2 in ms) and, for N and HF,
     P(Sa_HF < Sa_N) and P(tau2_HF > tau2_N) over all pairs of their independent draws
     (optim.identify.probability_lower)."""
-    from optim.amortised import identify_patients
+    from optim.identify import identify_patients
     from optim.identify import probability_lower
 
     answers = {a.patient: a for a in identify_patients([builtin(p) for p in patients], n_samples, seed=seed)}

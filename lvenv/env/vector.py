@@ -222,6 +222,19 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self._parameters = np.asarray(info["parameters"])[: self.num_envs]
         return np.asarray(obs)[: self.num_envs], self._info(info)
 
+    def start_cold(self, *, seed: int = 0) -> None:
+        """Put every member at its patient's cold start without simulating: the next :meth:`step`
+        starts there. :meth:`reset` instead simulates every member to steady state (and compiles
+        to do so), which a run that sets every member before its first step does not need:
+        :func:`optim.cohort.fit_reports` fills every member with :meth:`replace_patients` first.
+        ``seed`` seeds the measurement noise's key, as :meth:`reset`'s does."""
+        super().reset(seed=seed)
+        n = self.num_envs
+        cold = core.EnvState(y=np.asarray(self._host_params.y_cold), steps=np.zeros(n, np.int32), needs_reset=np.zeros(n, bool))
+        self._state = jax.tree.map(jax.device_put, shard_members(cold, n)[0])  # device arrays, as a reset leaves them
+        self._key = jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1))
+        self._parameters = np.asarray(self.config.actions.current(self._host_params.heart))
+
     def _check_actions(self, actions) -> np.ndarray:
         expected = (self.num_envs, len(self.action_names))
         arr = real_array("actions", actions)

@@ -15,7 +15,8 @@ then ``identify.posterior(patient)`` is the usual entry point:
   exact prior draws for calibration (:func:`log_density`, :func:`prior_sample`, :func:`prior_draws`);
 * :mod:`optim.identify.sampler`: the posterior's samples, by ensemble pilot and independent
   chains or NUTS (:func:`posterior`), or by the amortised flow of :mod:`optim.amortised`
-  (:func:`amortised`), and their comparison (:func:`probability_lower`);
+  (:func:`amortised`; for a list of patients, MCMC where flagged: :func:`identify_patients`),
+  and their comparison (:func:`probability_lower`);
 * :mod:`optim.identify.report`: all of it at a fit, as a per-patient report (:func:`write_report`).
 
 The scripts' sampler options live with the scripts (``scripts/posterior_options.py``).
@@ -26,7 +27,7 @@ from optim.identify.density import PriorSample, log_density, prior_draws, prior_
 from optim.identify.noise import Relative, chi2, chi2_weighted, measurement_sd
 from optim.identify.profiles import Profiles, profile
 from optim.identify.report import write_report
-from optim.identify.sampler import Posterior, amortised, posterior, probability_lower
+from optim.identify.sampler import Identified, Posterior, amortised, identify_patients, posterior, probability_lower
 from optim.identify.sensitivities import Sensitivity, sensitivity
 
 # The constants are bound by assignment, so that the API reference documents them here too.
@@ -46,5 +47,5 @@ SAMPLERS = sampler.SAMPLERS
 __all__ = [
     "NOISE", "Relative", "VOLUME_NAMES", "measurement_sd", "chi2_weighted", "chi2", "PLAUSIBILITY_SD", "DELTA_95", "FLAT",
     "Sensitivity", "Profiles", "Posterior", "sensitivity", "profile", "posterior", "probability_lower", "prior_draws",
-    "prior_sample", "PriorSample", "amortised", "log_density", "write_report", "SAMPLERS",
+    "prior_sample", "PriorSample", "amortised", "identify_patients", "Identified", "log_density", "write_report", "SAMPLERS",
 ]

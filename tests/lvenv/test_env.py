@@ -182,6 +182,31 @@ def test_replace_patients_restarts_those_members_cold_and_leaves_the_others_bit_
         env.unwrapped.replace_patients([0, 3], [hf])
 
 
+def test_a_cold_start_without_the_reset_steps_like_a_cold_simulation_and_compiles_no_reset():
+    """start_cold puts every member at its patient's cold start without simulating (what
+    optim.cohort needs before it fills every member): its first step equals simulate() from the
+    cold start, and no reset is traced."""
+    from lvenv.env.vector import TRACES
+
+    optimise = dict(autoreset_mode="Disabled", tolerance=0.0, max_episode_steps=None, **FAST)
+    hf = builtin("heart_failure")
+    env = gymnasium.make_vec(ENV_ID, num_envs=2, patient=[builtin("normal"), hf], **optimise)
+    with pytest.raises(gymnasium.error.ResetNeeded):
+        env.step(np.zeros((2, 6)))
+    traced = sum(TRACES.values())
+    env.unwrapped.start_cold(seed=3)
+    assert sum(TRACES.values()) == traced, "start_cold simulates nothing"
+    actions = np.array([[0.2, 1.3, 0.03, 0.2, 15.0, 2.0], [0.15, 0.9, 0.01, 0.3, 8.0, 6.0]])
+    assert np.array_equal(env.unwrapped.get_state()["parameters"][1], [float(hf.heart.get(n)) for n in env.unwrapped.action_names])
+    obs, *_ = env.step(actions)
+    names = env.unwrapped.action_names
+    patients = env.unwrapped.patients
+    cold = lvenv.simulate([patients[i].heart.replace(**dict(zip(names, map(float, actions[i])))) for i in (0, 1)], traces=False,
+                          scheme="adaptive", acceleration="anderson", volume_trace=False, **FAST)
+    for i in (0, 1):
+        np.testing.assert_allclose(obs[i], [np.nan_to_num(cold.metrics[k][i]) for k in OBS_NAMES], rtol=1e-10)
+
+
 @pytest.fixture(scope="module")
 def fuzz_env():
     return gymnasium.make_vec(ENV_ID, num_envs=32, steps_per_beat=250, max_beats=8)

@@ -15,7 +15,7 @@ from lvenv.patients import Patient, builtin
 from lvenv.status import STATUS
 from lvenv.validation import InputError
 from optim import amortised
-from optim.identify import NOISE, Posterior, PriorSample, amortised as amortised_posteriors, measurement_sd
+from optim.identify import NOISE, Posterior, PriorSample, amortised as amortised_posteriors, identify_patients, measurement_sd
 
 TRAIN, HELD_OUT = 240, 100
 TINY = amortised.Architecture(flow_layers=3, knots=6, nn_width=32, nn_depth=1)
@@ -160,10 +160,10 @@ def test_refine_replaces_flagged_posteriors_by_mcmc_and_keeps_the_flag():
     far = dataclasses.replace(normal, name="far", targets={"EF": 0.15, "ET": 0.12, "IVRT": 0.25, "P_ao_pulse": 20.0})
     volume = dataclasses.replace(normal, name="volume", targets={"EF": 0.6, "EDV": 120.0})
     mcmc = {"walkers": 12, "steps": 4, "chains": 0, "steps_per_beat": 200, "max_beats": 20}
-    answers = amortised.identify_patients([normal, far, volume], 200, refine=False)
+    answers = identify_patients([normal, far, volume], 200, refine=False)
     assert [bool(a.flag) for a in answers] == [False, True, True] and "['EDV']" in answers[2].flag and answers[2].posterior is None
     calls = []
-    ok, refined = amortised.identify_patients([normal, far], 200, refine=True, mcmc_options=mcmc, progress=lambda *a: calls.append(a))
+    ok, refined = identify_patients([normal, far], 200, refine=True, mcmc_options=mcmc, progress=lambda *a: calls.append(a))
     assert calls == [(0, 1, "far")]
     assert (ok.refined, ok.posterior.sampler, ok.flag) == (False, "amortised", "")
     assert refined.refined and refined.posterior.sampler == "ensemble" and refined.flag == answers[1].flag != ""

@@ -181,7 +181,7 @@ def test_a_killed_run_resumes_without_refitting_and_gives_the_same_file(reports_
 def test_failed_values_are_empty_cells_never_zeros():
     result = {"id": "X", "line": 2, "extra": {}, "parameters": dict.fromkeys(cohort.DEFAULT_ACTION_PARAMS, float("nan")),
               "observation": dict.fromkeys(OBS_NAMES, float("nan")), "targets": {"EF": 0.5},
-              "mismatch": float("nan"), "evaluations": 16, "stop": "failed", "status": "diverged"}
+              "mismatch": float("nan"), "evaluations": 16, "stop": "failed", "status": "diverged", "maps": "base"}
     row = cohort._row(result)
     assert row["tau2_s"] == "" and row["mismatch"] == "" and row["mismatch_EF"] == "" and row["fit_EF_pct"] == ""
     assert row["status"] == "diverged" and row["stop"] == "failed"

@@ -30,7 +30,7 @@ def _stand_in(reports, options=None, *, on_done=None):
         observation = dict.fromkeys(cohort.OBS_NAMES, math.nan) | dict(report.patient.targets) | {"P_ao_sys": 16.0, "EDP": 1.0, "P_at_mean": 1.2}
         result = {"id": report.id, "line": report.line, "extra": report.extra, "targets": dict(report.patient.targets),
                   "parameters": {n: float(report.patient.heart.get(n)) for n in cohort.DEFAULT_ACTION_PARAMS},
-                  "observation": observation, "mismatch": 0.0, "evaluations": 8, "stop": "tolerance", "status": "ok"}
+                  "observation": observation, "mismatch": 0.0, "evaluations": 8, "stop": "tolerance", "status": "ok", "maps": "base"}
         results.append(result)
         if on_done is not None:
             on_done(result)
