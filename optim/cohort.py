@@ -768,7 +768,7 @@ def run_cohort(
     pending = [r for r in parsed.rows if r.id not in done]
     identified = {}
     if posterior is not None and pending:
-        from optim.identify import identify_patients
+        from optim.identify.sampler import identify_patients
 
         answers = identify_patients([r.patient for r in pending], posterior.n_samples, seed=posterior.seed, refine=posterior.refine,
                                     mcmc_options=posterior.mcmc, progress=posterior_progress)
