@@ -53,6 +53,10 @@ and the code version. :func:`load` rebuilds the flow from the architecture and c
 array's shape and every recorded setting against this code: a malformed file, another format or
 version, other bounds, noise, bands, bases or observation names give an
 :class:`lvenv.archive.ArchiveError` that says what differs.
+
+Length: a little over 600 lines, because the training pairs, the flow, its batched sampler and
+the artefact that rebuilds it are one estimator: the artefact's checks must name every setting
+the pairs and the flow were made with.
 """
 
 from __future__ import annotations
