@@ -709,7 +709,7 @@ def bench_command(name, args) -> int:
 @click.option("--json", "as_json", is_flag=True, help="print the report's path as JSON")
 def report_command(root, out_path, as_json) -> int:
     """Rebuild one markdown report of every experiment (training, generalisation, multi-element,
-    inverse problem, calibration, benchmarks, anatomy: optim.report.SECTIONS) from the results the
+    fidelity, inverse problem, calibration, benchmarks, anatomy: optim.report.SECTIONS) from the results the
     scripts left under ROOT; nothing is recomputed."""
     from optim.report import build_report
 

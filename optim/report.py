@@ -13,6 +13,7 @@ section            read from                                              writte
 training           ``lvenv/data/trained_*.json``                          ``python scripts/train_presets.py``
 generalisation     ``out/generalisation/generalisation.{md,png}``         ``python scripts/generalisation.py``
 multi-element      ``out/multielement/multielement.md``                   ``python scripts/multielement_study.py``
+fidelity           ``out/diagnosis/diagnosis.md``                         ``python scripts/congruency_diagnosis.py``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
                    ``out/identify/posterior_patients.json`` and           ``python scripts/posterior_patients.py``;
                    ``posterior_pairs.png``;
@@ -44,9 +45,10 @@ from optim.cohort import summarise
 __all__ = ["build_report", "build_pages", "SECTIONS", "TITLES"]
 
 #: Section keys, in report order; also the page names of :func:`build_pages` (spaces → hyphens).
-SECTIONS = ("training", "generalisation", "multi-element", "inverse problem", "calibration", "benchmarks", "anatomy")
+SECTIONS = ("training", "generalisation", "multi-element", "fidelity", "inverse problem", "calibration", "benchmarks", "anatomy")
 #: The heading of each section.
 TITLES = {"training": "Training (congruency)", "generalisation": "Generalisation", "multi-element": "Multi-element models",
+          "fidelity": "Where the LO heart misses the FE wall",
           "inverse problem": "Inverse problem", "calibration": "Calibration of the posteriors", "benchmarks": "Benchmarks",
           "anatomy": "Anatomy"}
 BENCH_ROWS = 60  # rows of one benchmark's table at most; the rest stay in its JSON, which the page names
@@ -224,6 +226,7 @@ def _sections(root: Path, report_dir: Path, level: int) -> dict[str, list[str]]:
         "generalisation": _markdown_file(root / "generalisation" / "generalisation.md", "python scripts/generalisation.py", report_dir,
                                          (root / "generalisation" / "generalisation.png",)),
         "multi-element": _markdown_file(root / "multielement" / "multielement.md", "python scripts/multielement_study.py", report_dir),
+        "fidelity": _markdown_file(root / "diagnosis" / "diagnosis.md", "python scripts/congruency_diagnosis.py", report_dir),
         "inverse problem": _inverse(root, report_dir, level),
         "calibration": _calibration(root, level),
         "benchmarks": _benchmarks(root, level),

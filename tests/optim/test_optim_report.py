@@ -36,7 +36,7 @@ def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_
     _results(root)
     pages = report.build_pages(root, tmp_path / "docs" / "results")
     names = [p.stem for p in pages]
-    assert names == ["index", "training", "generalisation", "multi-element", "inverse-problem", "calibration", "benchmarks", "anatomy"]
+    assert names == ["index", "training", "generalisation", "multi-element", "fidelity", "inverse-problem", "calibration", "benchmarks", "anatomy"]
     index = pages[0].read_text()
     assert index.startswith("# Results") and all(f"\n{name}\n" in index for name in names[1:]), "the index's toctree lists every page"
     text = {p.stem: p.read_text() for p in pages[1:]}
@@ -47,6 +47,7 @@ def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_
     assert "| normal | " in text["training"] and re.search(r"\| \d{4}-\d\d-\d\d \|", text["training"]), "the record's training date"
     assert "Not run yet. Command: `python scripts/generalisation.py`" in text["generalisation"]
     assert "Not run yet. Command: `python scripts/multielement_study.py`" in text["multi-element"]
+    assert "Not run yet. Command: `python scripts/congruency_diagnosis.py`" in text["fidelity"]
     inverse = text["inverse-problem"]
     assert "## Built-in patients" in inverse and "results of 1971-01-01 00:00 UTC" in inverse and "normal   mads    0.42 %" in inverse
     assert "Not run yet. Command: `lvenv cohort REPORTS.csv --out out/cohort/fits.csv`" in inverse
