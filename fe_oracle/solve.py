@@ -7,12 +7,15 @@ the cache's default). The result goes into the oracle's content-hash cache; the 
 campaign (:mod:`optim.campaign`) runs every FE solve this way, with a timeout, so that a crash or
 a hang ends this process, not the worker that started it. It imports only ``fe_oracle`` and
 ``lvenv``, and turns on JAX's persistent compilation cache (:mod:`lvenv.jitcache`) as every
-``lvenv`` command does.
+``lvenv`` command does. A Ctrl-C ends it at once (SIGINT at its default disposition, even when
+started by a Dask worker that ignores it, :mod:`optim.cluster`): its caller sees it killed by
+SIGINT and keeps nothing of it.
 """
 
 from __future__ import annotations
 
 import json
+import signal
 import sys
 
 from lvenv import jitcache
@@ -27,6 +30,7 @@ __all__ = ["main"]
 
 def main(request_json: str) -> int:
     """Run the request (module docstring); returns the exit code."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     jitcache.enable()
     request = json.loads(request_json)
     try:

@@ -59,6 +59,7 @@ import json
 import math
 import os
 import pathlib
+import signal
 import subprocess
 import sys
 import time
@@ -80,7 +81,7 @@ from optim.cluster import client
 from optim.cohort import GEOMETRY_COLUMNS
 
 __all__ = [
-    "BOX", "DECIMALS", "DATASET", "FORMAT_VERSION", "CONTRACTION_LIMIT", "STATUSES", "COLUMNS", "Settings", "CampaignError",
+    "BOX", "DECIMALS", "DATASET", "FORMAT_VERSION", "CONTRACTION_LIMIT", "STATUSES", "COLUMNS", "Settings", "CampaignError", "Interrupted",
     "design", "run", "solve_anatomy", "trace_archive", "read_index", "oracle_data", "throughput",
 ]
 
@@ -107,6 +108,10 @@ _TRACE_NAMES = ("t", "V", "P_lv", "P_ao", "P_at", "P_c")
 class CampaignError(InputError):
     """A campaign folder that cannot be used as asked: malformed, of another format or code
     version, or of other settings. Names the file and what differs."""
+
+
+class Interrupted(Exception):
+    """An FE solve stopped by Ctrl-C: the anatomy is not finished, and stays pending."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -192,6 +197,8 @@ def _solve(geometry: Geometry, case, settings: Settings, cache_dir: str | None) 
     if done.returncode == 0:
         how, key = done.stdout.split()[-2:]
         return key, "", seconds, how == "cached"
+    if done.returncode == -signal.SIGINT:
+        raise Interrupted(f"case {case}: the FE solve was interrupted (Ctrl-C)")
     if done.returncode < 0:
         return None, f"case {case}: the FE solve was killed by signal {-done.returncode}", seconds, False
     last = [line for line in done.stderr.strip().splitlines() if line.strip()]
@@ -440,6 +447,8 @@ def run(directory: str | os.PathLike[str] = DATASET, *, n: int | None = None, he
             left -= 1
             try:
                 result = future.result()
+            except Interrupted:  # a Ctrl-C reached the solve before this process: the anatomy stays pending
+                continue
             except Exception as err:  # noqa: BLE001 - a dead worker or a bug fails this anatomy, not the campaign
                 now = time.time()
                 result = {"id": futures[future], "fields": {"status": "failed_task", "reason": f"{type(err).__name__}: {err}"}, "traces": None,

@@ -4,12 +4,21 @@
 ``tcp://host:8786``) it connects to that existing cluster, else it starts a ``LocalCluster`` of
 ``workers`` single-threaded processes on loopback. An address that answers nothing within
 ``timeout_s`` is an :class:`~lvenv.validation.InputError` naming it.
+
+Interrupts. A terminal's Ctrl-C sends SIGINT to the whole process group, the local workers
+included, which then died with a traceback each. The local workers start with SIGINT ignored
+(they inherit it, :func:`_interrupts_ignored`), so this process alone handles it: it raises
+``KeyboardInterrupt``, the ``with`` block closes the cluster, and the workers are shut down
+with it. A worker's own subprocess that must stop on Ctrl-C resets SIGINT itself (the FE solve
+of ``python -m fe_oracle.solve``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import threading
 from collections.abc import Iterator
 
 from lvenv.validation import InputError, integer
@@ -20,6 +29,20 @@ __all__ = ["client", "default_workers"]
 def default_workers() -> int:
     """Worker processes of a default ``LocalCluster``: one per core this process may use."""
     return max(1, len(os.sched_getaffinity(0)))
+
+
+@contextlib.contextmanager
+def _interrupts_ignored() -> Iterator[None]:
+    """SIGINT ignored in this process meanwhile (the main thread only can change it), so that
+    the processes it starts inherit it ignored (module docstring)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 @contextlib.contextmanager
@@ -39,5 +62,7 @@ def client(workers: int | None = None, scheduler: str | None = None, *, timeout_
             yield handle
         return
     workers = default_workers() if workers is None else integer("workers", workers, 1)
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, Client(cluster) as handle:
+    with _interrupts_ignored():
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
+    with cluster, Client(cluster) as handle:
         yield handle
