@@ -96,6 +96,8 @@ def print_posteriors(patients, n_samples: int, seed: int) -> None:
         print(f"P(Sa_HF < Sa_N) = {probability_lower(hf.posterior, n.posterior, 'Sa'):.3f}   "
               f"P(tau2_HF > tau2_N) = {probability_lower(n.posterior, hf.posterior, 'tau2'):.3f}   "
               "(independent posteriors of the two patients, over all pairs of draws)")
+        print("the amortised estimator approximates the MCMC posterior; python scripts/compare_amortised.py measures how closely "
+              "(medians in MCMC sd, interval widths), and python scripts/posterior_patients.py gives the MCMC one")
 
 
 def main() -> None:
