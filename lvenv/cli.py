@@ -410,9 +410,13 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     record = _patient_arg(patient)
     if map_draws == 1:
         raise click.UsageError("--map-draws needs at least 2 draws (0: no refits)")
-    if map_draws and record.anatomy.get("maps", {}).get("source") != "regression":
-        raise click.UsageError(f"--map-draws: the maps of {record.name!r} do not come from the anatomy regression; "
-                               "give its record \"lo\": \"regression\"")
+    if map_draws:
+        from optim.map_uncertainty import require_regression_maps
+
+        try:
+            require_regression_maps(record)
+        except InputError as err:
+            raise click.UsageError(f"--map-draws: {err}") from None
     if method == "lm":
         from optim.lm import fit_lm
 

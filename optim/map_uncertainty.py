@@ -28,7 +28,7 @@ from lvenv.status import is_usable
 from lvenv.validation import InputError, integer
 from optim.lm import fit_lm
 
-__all__ = ["MapSpread", "refit"]
+__all__ = ["MapSpread", "require_regression_maps", "refit"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,6 +63,14 @@ class MapSpread:
                 "mismatch": self.mismatch.tolist(), "status": list(self.status), "control_mismatch": self.control_mismatch}
 
 
+def require_regression_maps(patient: Patient) -> None:
+    """:class:`~lvenv.validation.InputError` unless ``patient``'s maps come from the anatomy
+    regression (its record's ``"lo": "regression"``): only those have an uncertainty to refit over."""
+    if patient.anatomy.get("maps", {}).get("source") != "regression":
+        raise InputError(f"the maps of {patient.name!r} do not come from the anatomy regression, so they have no uncertainty "
+                         "to refit over; give its record \"lo\": \"regression\"")
+
+
 def refit(patient: Patient, parameters: Mapping[str, float], draws: int, *, seed: int = 0, budget: int = 24, steps_per_beat: int = 1000,
           plausibility: bool = True, regression: Regression | None = None, progress: Callable[[int, int], None] | None = None) -> MapSpread:
     """Refit ``patient`` at ``draws`` draws of its maps and at its predicted maps (module
@@ -75,9 +83,7 @@ def refit(patient: Patient, parameters: Mapping[str, float], draws: int, *, seed
     :class:`~lvenv.validation.InputError`.
     """
     draws, seed = integer("draws", draws, 2, 1000), integer("seed", seed, 0)
-    if patient.anatomy.get("maps", {}).get("source") != "regression":
-        raise InputError(f"patient {patient.name!r}: its maps do not come from the anatomy regression, so they have no "
-                         "uncertainty to refit over; give its record \"lo\": \"regression\"")
+    require_regression_maps(patient)
     if missing := [n for n in DEFAULT_ACTION_PARAMS if n not in parameters]:
         raise InputError(f"parameters lack {missing}; a refit starts from every one of {list(DEFAULT_ACTION_PARAMS)}")
     start = patient.heart.replace(**{n: parameters[n] for n in DEFAULT_ACTION_PARAMS})
