@@ -2,8 +2,11 @@
 
 One Gaussian process per trained quantity maps the six unloaded geometric parameters (Rb, L, Z,
 H in mm, e, C0 in degrees) to a trained LO parameter (μ1, μ2, γ, α, β, a, b, c, the activation
-delay) or to the trained heart's congruency C. Inputs and outputs are standardised (mean 0, sd
-1 over the training anatomies); the kernel is::
+delay) or to the trained heart's congruency C. A quantity that cannot be negative is regressed
+in log (the output spec's ``"log"``; `optim.regression` decides): its prediction stays positive,
+and a spread that grows with the value, as γ's does towards weakly contracting anatomies, becomes
+even. Inputs and outputs (after the log) are standardised (mean 0, sd 1 over the training
+anatomies); the kernel is::
 
     k(x, x') = σ² · Matern_ν=5/2(‖(x − x') / ℓ‖) + σ_n² δ(x, x')
 
@@ -20,7 +23,9 @@ output's sd. The floors were chosen among six variants by the campaign's cross-v
 those figures are slightly optimistic: the held-out anatomies (:func:`optim.regression.held_out`)
 are the independent check. The predictive mean and standard deviation at a new anatomy come from
 scikit-learn's ``GaussianProcessRegressor`` rebuilt with the stored hyperparameters (no
-optimisation), so loading is exact and fast; the sd includes σ_n.
+optimisation), so loading is exact and fast; the sd includes σ_n. A log output's predicted
+value is the median exp(m) of its log-normal predictive distribution, and its sd that
+distribution's (exp(m) √(exp(s²) − 1) for a log-scale sd s).
 
 The artefact is one JSON file (:data:`ARTEFACT`, format :data:`FORMAT_VERSION`): the inputs'
 and outputs' scalings, each GP's hyperparameters and cross-validation figures, the training
@@ -58,7 +63,7 @@ from lvenv.validation import InputError, integer, real
 __all__ = ["ARTEFACT", "ARTEFACT_ENV", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "load_regression", "from_geometry", "predicted_maps", "map_draws", "unload", "inflate", "unload_to_volume"]
 
 ARTEFACT = DATA / "anatomy" / "regression.json"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 #: The GP inputs: the `Geometry` fields, in order.
 INPUTS = tuple(f.name for f in dataclasses.fields(Geometry))
 #: The trained LO parameters a regression predicts.
@@ -89,10 +94,10 @@ def kernel(n_inputs: int, *, constant: float = 1.0, length_scale: Sequence[float
 @dataclasses.dataclass(frozen=True, eq=False)
 class Regression:
     """A loaded regression artefact (module docstring). ``outputs`` maps a name to its scaling
-    (``mean``, ``scale``), its hyperparameters (``constant``, ``length_scale``, ``noise``) and
-    ``cv``, or, for an output the training kept at one value, to ``{"mean": value, "fixed":
-    true}`` (predicted as that value with sd 0); ``x`` and ``y`` are the standardised training
-    data; ``box`` the sampling box."""
+    (``mean``, ``scale``, of the log where ``log`` is true), its hyperparameters (``constant``,
+    ``length_scale``, ``noise``) and ``cv``, or, for an output the training kept at one value, to
+    ``{"mean": value, "fixed": true}`` (predicted as that value with sd 0); ``x`` and ``y`` are
+    the standardised training data; ``box`` the sampling box."""
 
     x_mean: np.ndarray
     x_scale: np.ndarray
@@ -122,6 +127,8 @@ class Regression:
                     value = spec[field]
                     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                         raise ValueError(f"outputs.{name}.{field} = {value!r} is not a finite number")
+                if not isinstance(spec.get("log", False), bool):
+                    raise ValueError(f"outputs.{name}.log = {spec['log']!r} is not true or false")
                 if not spec.get("fixed") and len(spec["length_scale"]) != len(INPUTS):
                     raise ValueError(f"outputs.{name}.length_scale has {len(spec['length_scale'])} entries, not {len(INPUTS)}")
         except (KeyError, TypeError, ValueError) as err:
@@ -166,8 +173,10 @@ class Regression:
         return [f"geometry.{k} = {getattr(geometry, k):g} outside the sampled range [{lo:g}, {hi:g}]"
                 for k, (lo, hi) in self.box.items() if not lo <= getattr(geometry, k) <= hi]
 
-    def predict(self, geometries: Sequence[Geometry], names: Sequence[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-        """Predictive means and sds (physical units) per output name, each of shape (anatomies,)."""
+    def latent(self, geometries: Sequence[Geometry], names: Sequence[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Predictive means and sds per output name, each of shape (anatomies,), on the scale
+        each GP models: physical units, or their log where the spec says ``log``
+        (:meth:`physical` maps a value on that scale back)."""
         names = tuple(self.outputs) if names is None else tuple(names)
         x = self.standardise(geometries)
         mean, sd = {}, {}
@@ -178,6 +187,19 @@ class Regression:
                 continue
             m, s = self._gp(name).predict(x, return_std=True)
             mean[name], sd[name] = m * spec["scale"] + spec["mean"], s * spec["scale"]
+        return mean, sd
+
+    def physical(self, name: str, value: np.ndarray) -> np.ndarray:
+        """``value`` of output ``name`` on its GP's scale (:meth:`latent`), in physical units."""
+        return np.exp(value) if self.outputs[name].get("log") else value
+
+    def predict(self, geometries: Sequence[Geometry], names: Sequence[str] | None = None) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Predicted values and sds (physical units) per output name, each of shape (anatomies,):
+        the GP's mean and sd, or for a log output its log-normal's median and sd (module docstring)."""
+        mean, sd = self.latent(geometries, names)
+        for name in mean:
+            if self.outputs[name].get("log"):
+                mean[name], sd[name] = np.exp(mean[name]), np.exp(mean[name]) * np.sqrt(np.expm1(sd[name] ** 2))
         return mean, sd
 
     def to_dict(self) -> dict[str, Any]:
@@ -257,21 +279,22 @@ def predicted_maps(geometry: Geometry, regression: Regression | str | pathlib.Pa
 
 def map_draws(geometry: Geometry, n: int, *, seed: int = 0, regression: Regression | str | pathlib.Path | None = None) -> list[LOParams]:
     """``n`` draws of the LO maps of ``geometry`` from the regression's predictive distribution:
-    each parameter normal with its GP's mean and sd (one GP per parameter, so independent),
-    clipped to its allowed range. Refitting a patient at each draw carries the maps'
+    each parameter normal with its GP's mean and sd on the GP's scale (log-normal for a log
+    output; one GP per parameter, so independent), clipped to its allowed range. Refitting a patient at each draw carries the maps'
     uncertainty into the fitted parameters."""
     n, seed = integer("n", n, 1, 10_000), integer("seed", seed, 0)
     regression = load_regression(regression)
     with warnings.catch_warnings():  # from_geometry's own call warns, not each draw
         warnings.simplefilter("ignore", ExtrapolationWarning)
-        mean, sd = regression.predict([geometry], LO_OUTPUTS)
+        mean, sd = regression.latent([geometry], LO_OUTPUTS)
     rng = np.random.default_rng(seed)
     draws = []
     for _ in range(n):
         values = {}
         for field in dataclasses.fields(LOParams):
             low, high = field.metadata["range"]
-            values[field.name] = float(np.clip(mean[field.name][0] + sd[field.name][0] * rng.standard_normal(), low, high))
+            value = regression.physical(field.name, mean[field.name][0] + sd[field.name][0] * rng.standard_normal())
+            values[field.name] = float(np.clip(value, low, high))
         draws.append(LOParams(**values))
     return draws
 

@@ -825,13 +825,14 @@ def campaign_regress_command(directory, out_path, restarts, folds, seed, as_json
         _print_json({"artefact": str(path), "anatomies": len(fitted.ids), "cv": cv})
         return EXIT_OK
     table = Table(title=f"{len(fitted.ids)} anatomies, {folds}-fold cross-validation → {path}", title_justify="left")
-    for col in ("output", "R²", "RMSE", "within 2 sd"):
+    for col in ("output", "regressed", "R²", "RMSE", "within 2 sd"):
         table.add_column(col, justify="right")
     for name, figures in cv.items():
         if figures == "fixed":
-            table.add_row(name, "fixed by training", "", "")
+            table.add_row(name, "fixed by training", "", "", "")
         else:
-            table.add_row(name, f"{figures['r2']:.3f}", f"{figures['rmse']:.4g}", f"{100 * figures['coverage_2sd']:.0f} %")
+            table.add_row(name, "in log" if fitted.outputs[name].get("log") else "as is", f"{figures['r2']:.3f}", f"{figures['rmse']:.4g}",
+                          f"{100 * figures['coverage_2sd']:.0f} %")
     _out().print(table)
     return EXIT_OK
 

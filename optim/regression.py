@@ -5,12 +5,15 @@ one scikit-learn ``GaussianProcessRegressor`` per trained quantity (the LO param
 :data:`lvenv.anatomy.LO_OUTPUTS` and the congruency C) with the kernel of
 :func:`lvenv.anatomy.kernel` on standardised inputs and outputs, maximising the log marginal
 likelihood from ``restarts`` + 1 starts, and cross-validates each by k-fold (the
-hyperparameters refitted on every training fold). It returns a :class:`lvenv.anatomy.Regression`,
+hyperparameters refitted on every training fold). An output that cannot be negative
+(:data:`NON_NEGATIVE`) and is positive at every training anatomy is regressed in log
+(:func:`in_log`; why in :mod:`lvenv.anatomy`). It returns a :class:`lvenv.anatomy.Regression`,
 which `save` writes as the package's JSON artefact.
 
 Cross-validation figures per output: R² = 1 − Σ(y − ŷ)² / Σ(y − ȳ)² over the held-out
 predictions, the RMSE (physical units) and the fraction of held-out anatomies within 2
-predictive sd of their trained value. An output with one value over every training anatomy
+predictive sd of their trained value, all in physical units except that a log output's
+prediction ŷ is its median and its 2-sd band is taken on the log scale. An output with one value over every training anatomy
 (a parameter congruency training keeps fixed, such as α and β) gets no GP: the artefact marks
 it ``fixed`` and predicts that value with sd 0, and it has no cross-validation figures.
 
@@ -22,6 +25,7 @@ preset's maps.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import hashlib
 import json
@@ -40,10 +44,13 @@ from lvenv.validation import InputError, integer
 from optim import campaign
 from optim.cohort import GEOMETRY_COLUMNS
 
-__all__ = ["OUTPUTS", "MIN_ANATOMIES", "training_set", "is_fixed", "fit_gp", "cross_validate", "fit", "save", "held_out"]
+__all__ = ["OUTPUTS", "NON_NEGATIVE", "MIN_ANATOMIES", "training_set", "is_fixed", "in_log", "fit_gp", "cross_validate", "fit", "save", "held_out"]
 
 #: What the regression predicts: the LO parameters and the trained heart's C.
 OUTPUTS = (*LO_OUTPUTS, "C")
+#: The outputs that cannot be negative: the LO parameters whose allowed range starts at 0 or
+#: above (:class:`lvenv.params.LOParams`), and C.
+NON_NEGATIVE = (*(f.name for f in dataclasses.fields(LOParams) if f.metadata["range"][0] >= 0), "C")
 #: Fewer accepted anatomies than this make no regression (5 folds of at least 2).
 MIN_ANATOMIES = 10
 
@@ -65,6 +72,12 @@ def _scaling(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def is_fixed(values: np.ndarray) -> bool:
     """Whether ``values`` are one number (to 1e-12 relative): an output the training kept fixed."""
     return bool(np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))))
+
+
+def in_log(name: str, values: np.ndarray) -> bool:
+    """Whether output ``name`` is regressed in log: it cannot be negative and ``values`` (its
+    trained values over the anatomies) are all positive."""
+    return name in NON_NEGATIVE and bool(np.all(values > 0))
 
 
 def fit_gp(x: np.ndarray, y: np.ndarray, restarts: int = 5, seed: int = 0):
@@ -90,8 +103,9 @@ def _hyperparameters(gp) -> dict[str, Any]:
 
 def cross_validate(x: np.ndarray, y: dict[str, np.ndarray], folds: int = 5, restarts: int = 5, seed: int = 0) -> dict[str, dict[str, Any]]:
     """k-fold cross-validation per varying output (module docstring; fixed ones are left out):
-    ``r2``, ``rmse``, ``coverage_2sd`` and the held-out ``predicted`` means and ``sd`` in the
-    anatomies' order."""
+    ``r2``, ``rmse``, ``coverage_2sd``, ``log`` (:func:`in_log`) and the held-out ``predicted``
+    values and ``sd`` (physical units, as :meth:`lvenv.anatomy.Regression.predict` gives them)
+    in the anatomies' order."""
     from sklearn.model_selection import KFold
 
     folds = integer("folds", folds, 2, len(x))
@@ -99,17 +113,22 @@ def cross_validate(x: np.ndarray, y: dict[str, np.ndarray], folds: int = 5, rest
     for name, values in y.items():
         if is_fixed(values):
             continue
+        log = in_log(name, values)
+        target = np.log(values) if log else values
         mean, sd = np.empty(len(x)), np.empty(len(x))
         for train, test in KFold(folds, shuffle=True, random_state=seed).split(x):
             x_mean, x_scale = _scaling(x[train])
-            y_mean, y_scale = _scaling(values[train])
-            gp = fit_gp((x[train] - x_mean) / x_scale, (values[train] - y_mean) / y_scale, restarts, seed)
+            y_mean, y_scale = _scaling(target[train])
+            gp = fit_gp((x[train] - x_mean) / x_scale, (target[train] - y_mean) / y_scale, restarts, seed)
             m, s = gp.predict((x[test] - x_mean) / x_scale, return_std=True)
             mean[test], sd[test] = m * y_scale + y_mean, s * y_scale
+        covered = np.abs(target - mean) <= 2.0 * sd
+        if log:
+            mean, sd = np.exp(mean), np.exp(mean) * np.sqrt(np.expm1(sd**2))
         residual = values - mean
         total = np.sum((values - values.mean()) ** 2)
         out[name] = {"r2": float(1.0 - np.sum(residual**2) / total) if total > 0 else float("nan"), "rmse": float(np.sqrt(np.mean(residual**2))),
-                     "coverage_2sd": float(np.mean(np.abs(residual) <= 2.0 * sd)), "predicted": mean.tolist(), "sd": sd.tolist()}
+                     "coverage_2sd": float(np.mean(covered)), "log": log, "predicted": mean.tolist(), "sd": sd.tolist()}
     return out
 
 
@@ -133,10 +152,12 @@ def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int =
         if is_fixed(values):
             specs[name], ys[name] = {"mean": float(values[0]), "fixed": True}, np.zeros_like(values)
             continue
-        y_mean, y_scale = _scaling(values)
-        ys[name] = (values - y_mean) / y_scale
+        log = in_log(name, values)
+        target = np.log(values) if log else values
+        y_mean, y_scale = _scaling(target)
+        ys[name] = (target - y_mean) / y_scale
         gp = fit_gp(xs, ys[name], restarts, seed)
-        specs[name] = {"mean": float(y_mean), "scale": float(y_scale), **_hyperparameters(gp),
+        specs[name] = {"mean": float(y_mean), "scale": float(y_scale), "log": log, **_hyperparameters(gp),
                        "cv": {k: v for k, v in cv[name].items() if k in ("r2", "rmse", "coverage_2sd")} | {"folds": folds}}
     config = json.loads((pathlib.Path(directory) / "campaign.json").read_text())
     index = (pathlib.Path(directory) / "anatomies.csv").read_bytes()

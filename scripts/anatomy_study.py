@@ -56,8 +56,9 @@ def _markdown(summary: dict, command: str) -> str:
                          + f"{100 * f['strain_fe_median']:.1f} % ({100 * f['strain_fe_min']:.1f}–{100 * f['strain_fe_max']:.1f} %) |")
     if "cv" in summary:
         lines += ["", f"Cross-validation ({summary['folds']}-fold, {summary['training_anatomies']} anatomies):", "",
-                  "| output | R² | RMSE | within 2 sd |", "|---|---|---|---|"]
-        lines += [f"| {k} | fixed by training | | |" if v == "fixed" else f"| {k} | {v['r2']:.3f} | {v['rmse']:.4g} | {100 * v['coverage_2sd']:.0f} % |"
+                  "| output | regressed | R² | RMSE | within 2 sd |", "|---|---|---|---|---|"]
+        lines += [f"| {k} | fixed by training | | | |" if v == "fixed" else
+                  f"| {k} | {'in log' if v['log'] else 'as is'} | {v['r2']:.3f} | {v['rmse']:.4g} | {100 * v['coverage_2sd']:.0f} % |"
                   for k, v in summary["cv"].items()]
     if summary.get("held_out"):
         lines += ["", "| held-out anatomy | C trained (%) | C GP-predicted (%) | C N maps (%) |", "|---|---|---|---|"]
@@ -100,7 +101,7 @@ def main() -> None:
         regression.save(fitted, args.artefact)
         cv_predictions = fitted.provenance["cv_predictions"]
         summary.update(training_anatomies=len(ids), folds=args.folds, artefact=str(args.artefact),
-                       cv={k: v.get("cv", "fixed") for k, v in fitted.outputs.items()}, held_out=regression.held_out(fitted, args.dataset))
+                       cv={k: v["cv"] | {"log": v["log"]} if "cv" in v else "fixed" for k, v in fitted.outputs.items()}, held_out=regression.held_out(fitted, args.dataset))
         args.out.mkdir(parents=True, exist_ok=True)
         summary["figures"] = [str(p) for p in (
             plots.anatomy_scatter_figure(fitted, args.out / "anatomy_scatter.png"),

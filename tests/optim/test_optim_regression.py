@@ -72,6 +72,10 @@ def test_an_output_training_kept_fixed_is_predicted_exactly_with_no_spread(fitte
     assert mean["alpha"].tolist() == [0.7, 0.7] and sd["alpha"].tolist() == [0.0, 0.0] and np.all(sd["mu1"] > 0)
     draws = map_draws(geometry, 5, regression=loaded)
     assert {d.alpha for d in draws} == {0.7} and len({d.mu1 for d in draws}) == 5
+    # a log output's draws are log-normal around its predicted median
+    mean, sd = loaded.latent([geometry], ["mu1"])
+    z = (np.log([d.mu1 for d in map_draws(geometry, 400, regression=loaded, seed=1)]) - mean["mu1"][0]) / sd["mu1"][0]
+    assert abs(z.mean()) < 0.2 and 0.85 < z.std() < 1.15
 
 
 def test_artefact_round_trip_predicts_what_scikit_learn_predicts(fitted, dataset, tmp_path):
@@ -80,14 +84,20 @@ def test_artefact_round_trip_predicts_what_scikit_learn_predicts(fitted, dataset
     ids, x, y = regression.training_set(dataset, split="heldout")
     geometries = [Geometry(*row) for row in x]
     mean, sd = loaded.predict(geometries)
+    latent_mean, latent_sd = loaded.latent(geometries)
     # the reference: scikit-learn fitted afresh on the same standardised data with the same restarts
     xs = (x - fitted.x_mean) / fitted.x_scale
-    for name in ("mu1", "delay", "C"):
+    for name in ("mu1", "b", "delay", "C"):
         spec = fitted.outputs[name]
         gp = regression.fit_gp(fitted.x, fitted.y[name], restarts=0, seed=0)
         m, s = gp.predict(xs, return_std=True)
-        np.testing.assert_allclose(mean[name], m * spec["scale"] + spec["mean"], rtol=1e-6)
-        np.testing.assert_allclose(sd[name], s * spec["scale"], rtol=1e-4)
+        np.testing.assert_allclose(latent_mean[name], m * spec["scale"] + spec["mean"], rtol=1e-6)
+        np.testing.assert_allclose(latent_sd[name], s * spec["scale"], rtol=1e-4)
+    # positive outputs are regressed in log and predicted as the log-normal's median and sd; b (negative) is not
+    assert {n for n, spec in fitted.outputs.items() if spec.get("log")} == set(regression.OUTPUTS) - {"alpha", "b"}
+    np.testing.assert_allclose(mean["mu1"], np.exp(latent_mean["mu1"]), rtol=1e-12)
+    np.testing.assert_allclose(sd["mu1"], mean["mu1"] * np.sqrt(np.expm1(latent_sd["mu1"] ** 2)), rtol=1e-12)
+    assert mean["b"].tolist() == latent_mean["b"].tolist() and np.all(mean["b"] < 0)
     trained = anatomy.from_geometry(geometries[0], loaded)
     assert trained.lo.mu1 == pytest.approx(mean["mu1"][0]) and trained.provenance["sd"]["mu1"] == pytest.approx(sd["mu1"][0])
     assert trained.congruency["C"] == pytest.approx(mean["C"][0]) and not trained.provenance["outside_box"]
@@ -109,6 +119,7 @@ def test_malformed_or_missing_artefacts_are_refused_naming_the_problem(fitted, t
         "format": (record | {"format": 7}, "has format 7"),
         "length": (record | {"outputs": record["outputs"] | {"mu1": record["outputs"]["mu1"] | {"length_scale": [1.0]}}}, "outputs.mu1.length_scale has 1"),
         "noise": (record | {"outputs": record["outputs"] | {"mu1": record["outputs"]["mu1"] | {"noise": None}}}, "outputs.mu1.noise"),
+        "log": (record | {"outputs": record["outputs"] | {"mu1": record["outputs"]["mu1"] | {"log": "yes"}}}, "outputs.mu1.log = 'yes'"),
         "missing": ({k: v for k, v in record.items() if k != "x"}, "KeyError: 'x'"),
         "ids": (record | {"ids": record["ids"][:-1]}, "one entry per anatomy"),
     }
@@ -181,11 +192,16 @@ def test_a_prediction_outside_a_parameters_range_is_clipped_with_a_warning(fitte
 
     from lvenv.params import LOParams
 
-    shifted = dataclasses.replace(fitted, outputs={**fitted.outputs, "delay": fitted.outputs["delay"] | {"mean": -1.0}}, _gps={})
-    with pytest.warns(ExtrapolationWarning, match=r"lo.delay = -0.9\d* predicted, clipped to its allowed range \[0, "):
+    ranges = {f.name: f.metadata["range"] for f in dataclasses.fields(LOParams)}
+    # b (regressed as it is) below its range; the delay (regressed in log) above it
+    shifted = dataclasses.replace(fitted, outputs={**fitted.outputs, "b": fitted.outputs["b"] | {"mean": -100.0},
+                                                   "delay": fitted.outputs["delay"] | {"mean": 0.0}}, _gps={})
+    with pytest.warns(ExtrapolationWarning) as caught:
         trained = anatomy.from_geometry(Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0), shifted)
-    low = next(f for f in dataclasses.fields(LOParams) if f.name == "delay").metadata["range"][0]
-    assert trained.lo.delay == low and trained.provenance["clipped"]
+    messages = [str(w.message) for w in caught]
+    assert any(m.startswith("lo.b = -10") and m.endswith("clipped to its allowed range [-50, 50]") for m in messages), messages
+    assert any(m.startswith("lo.delay = 1.0") and m.endswith("clipped to its allowed range [0, 0.3]") for m in messages), messages
+    assert trained.lo.b == ranges["b"][0] and trained.lo.delay == ranges["delay"][1] and len(trained.provenance["clipped"]) == 2
 
 
 def test_a_patient_imaged_at_end_diastole_is_unloaded_and_gets_its_anatomys_maps(fitted, tmp_path, monkeypatch):
