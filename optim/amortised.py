@@ -80,11 +80,11 @@ from lvenv.params import Heart
 from lvenv.patients import Patient
 from lvenv.plausibility import resolve as resolve_bands
 from lvenv.validation import InputError, integer, real
-from optim.identify.density import prior_sample
+from optim.identify.density import PriorSample, prior_sample
 from optim.identify.noise import NOISE, Relative, measurement_sd
 
 __all__ = ["OBSERVED", "GEOMETRY", "CONDITION", "BASES", "HEART_RATE", "MISSING", "OOD_QUANTILE", "OOD_COMPONENTS", "OOD_FIT_ROWS", "FORMAT", "VERSION",
-           "DEFAULT_ARTEFACT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "train", "save", "load", "base_index", "observations",
+           "DEFAULT_ARTEFACT", "DRAWS_FORMAT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "save_draws", "load_draws", "train", "save", "load", "base_index", "observations",
            "HELD_OUT_TARGETS", "held_out_patients"]
 
 #: The targets the estimator conditions on (internal units: EF fraction, times s, pressures kPa).
@@ -188,6 +188,39 @@ def simulate(n: int, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, f
     and counted by status (``PriorSample.left_out``)."""
 
     return prior_sample(n, training_patients(bases), heart_rate=heart_rate, seed=seed, batch=batch)
+
+
+DRAWS_FORMAT = "lvenv-amortised-draws"
+
+
+def save_draws(draws: PriorSample, path: str | pathlib.Path, *, seeds: Sequence[int], bases: Sequence[str] = BASES,
+               heart_rate: tuple[float, float] = HEART_RATE) -> pathlib.Path:
+    """Write simulated pairs (:func:`simulate` over ``bases`` and ``heart_rate``, made with the
+    ``seeds`` given) to ``path``, an :mod:`lvenv.archive` ``.npz`` that :func:`load_draws` reads
+    back: the training set of a long simulation survives an interruption."""
+    arrays = {"parameters": draws.parameters, "observations": draws.observations, "heart_rate": draws.heart_rate, "base": draws.base}
+    meta = {"format": DRAWS_FORMAT, "names": list(draws.names), "tried": int(draws.tried), "left_out": dict(draws.left_out),
+            "seeds": [int(v) for v in seeds], "prior": _prior_meta(bases, heart_rate), "code_version": _code_version()}
+    return archive.save(path, arrays, meta)
+
+
+def load_draws(path: str | pathlib.Path, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, float] = HEART_RATE) -> tuple[PriorSample, list[int], str]:
+    """The pairs :func:`save_draws` wrote to ``path``, the seeds they were made with and the code
+    version that made them; :class:`lvenv.archive.ArchiveError` if the file is not such pairs of
+    :data:`OBSERVED`, or was drawn under another prior than this code's over ``bases`` and ``heart_rate``."""
+    arrays, meta = archive.load(path, "amortised training pairs")
+    what = f"training pairs {str(path)!r}"
+    if meta.get("format") != DRAWS_FORMAT or meta.get("names") != list(OBSERVED):
+        raise ArchiveError(f"{what} are not {DRAWS_FORMAT!r} pairs of {list(OBSERVED)} (format {meta.get('format')!r}, targets {meta.get('names')})")
+    if not _json_equal(meta.get("prior"), _prior_meta(bases, heart_rate)):
+        raise ArchiveError(f"{what} were drawn under the prior {meta.get('prior')}, not this code's {_prior_meta(bases, heart_rate)}; simulate new ones")
+    n = len(arrays.get("parameters", ()))
+    shapes = {"parameters": (n, len(DEFAULT_ACTION_PARAMS)), "observations": (n, len(OBSERVED)), "heart_rate": (n,), "base": (n,)}
+    if any(arrays.get(k) is None or arrays[k].shape != shape for k, shape in shapes.items()):
+        raise ArchiveError(f"{what}: arrays {[(k, getattr(arrays.get(k), 'shape', None)) for k in shapes]} do not have the shapes {list(shapes.values())}")
+    draws = PriorSample(arrays["parameters"], arrays["observations"], arrays["heart_rate"], arrays["base"].astype(int), tuple(OBSERVED),
+                        int(meta["tried"]), {str(k): int(v) for k, v in meta["left_out"].items()})
+    return draws, [int(v) for v in meta["seeds"]], str(meta.get("code_version"))
 
 
 def _noise_sd(noise: Mapping[str, Any]) -> np.ndarray:

@@ -1,27 +1,35 @@
 """Train the amortised posterior estimator (optim.amortised) and write its artefact; prints JSON.
 
-    python scripts/train_amortised.py [--pairs 1000000] [--sim-seconds 240] [--batch 256] [--train-seconds 150] [--out optim/data/amortised.npz]
+    python scripts/train_amortised.py [--pairs 1000000] [--sim-seconds 240] [--batch 256] [--chunk 5000] [--draws FILE]
+        [--copies 1] [--train-seconds 150] [--out optim/data/amortised.npz]
 
 Simulates (parameters, observation) pairs from optim.identify.posterior's prior
-(`optim.amortised.simulate`), as many as ``--pairs`` or as fit into ``--sim-seconds``: a pilot
-of ``--batch`` members compiles the env, a second one measures the rate, then one run sized to
-the time left. Trains the flow (``--train-seconds`` at most, early stopping on the validation loss)
-and saves the artefact to ``--out``. The JSON gives the pairs, uniform draws tried, those left
-out by reason, simulated pairs per second (kept pairs over the main run's seconds, compilation
-included), the training time and the validation loss, and the artefact's path.
+(`optim.amortised.simulate`) in chunks of ``--chunk`` pairs, ``--batch`` env members at a time,
+until there are ``--pairs`` or ``--sim-seconds`` have passed (a chunk under way finishes).
+``--draws FILE`` keeps the pairs (`optim.amortised.save_draws`, written after every chunk) and
+resumes from them: a second call adds chunks with new seeds, or only trains if there are
+enough. Chunk k uses seed ``--seed + 1 + k``; the held-out truths of the calibration use seeds
+from 1000 on. Trains the flow (``--train-seconds`` at most, early stopping on the validation loss;
+each pair ``--copies`` times with fresh noise and masks) and saves the artefact to ``--out``.
+The JSON gives the pairs, uniform draws tried, those left out by reason, the chunks' seconds,
+simulated pairs per second (median over the chunks after the first, which compiles the env),
+the training time and the validation loss, and the artefact's path.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import pathlib
+import statistics
 import time
-
-import numpy as np
 
 import lvenv  # noqa: F401  (float64, CPU devices)
 from optim import amortised
 from optim.identify import PriorSample
+
+#: Chunk seeds stay below the held-out truths' (optim.amortised.held_out_patients: seed + 1000).
+SEED_LIMIT = 1000
 
 
 def main() -> None:
@@ -29,6 +37,9 @@ def main() -> None:
     parser.add_argument("--pairs", type=int, default=1_000_000, help="at most this many training pairs (default %(default)s)")
     parser.add_argument("--sim-seconds", type=float, default=240.0, help="time budget of the simulation (s, default %(default)s)")
     parser.add_argument("--batch", type=int, default=256, help="env members per simulated batch (default %(default)s)")
+    parser.add_argument("--chunk", type=int, default=5000, help="pairs per simulated chunk (default %(default)s)")
+    parser.add_argument("--draws", default=None, help="file of simulated pairs: resumed from if it exists, written after every chunk")
+    parser.add_argument("--copies", type=int, default=1, help="uses of each pair, with fresh noise and masks (default %(default)s)")
     parser.add_argument("--train-seconds", type=float, default=150.0, help="time budget of the training (s, default %(default)s)")
     parser.add_argument("--batch-size", type=int, default=512, help="training minibatch (default %(default)s)")
     parser.add_argument("--learning-rate", type=float, default=1e-3, help="Adam's learning rate (default %(default)s)")
@@ -37,34 +48,34 @@ def main() -> None:
     parser.add_argument("--out", default=str(amortised.DEFAULT_ARTEFACT), help="artefact path (default %(default)s)")
     a = parser.parse_args()
 
+    parts: list[PriorSample] = []
+    seeds: list[int] = []
+    made_by = None
+    if a.draws and pathlib.Path(a.draws).exists():
+        loaded, seeds, made_by = amortised.load_draws(a.draws)
+        parts.append(loaded)
+    chunk_seconds: list[float] = []
     started = time.perf_counter()
-    parts = [amortised.simulate(1, seed=a.seed, batch=a.batch)]  # compiles the env
-    compile_seconds = time.perf_counter() - started
-    t = time.perf_counter()
-    parts.append(amortised.simulate(max(1, a.batch // 4), seed=a.seed + 1, batch=a.batch))
-    rate = len(parts[-1].parameters) / (time.perf_counter() - t)
-    main_pairs = int(min(a.pairs - sum(len(p.parameters) for p in parts), rate * max(0.0, a.sim_seconds - (time.perf_counter() - started))))
-    main_seconds = 0.0
-    if main_pairs > 0:
+    while sum(len(p.parameters) for p in parts) < a.pairs and time.perf_counter() - started < a.sim_seconds:
+        seed = a.seed + 1 + len(seeds)
+        if seed >= SEED_LIMIT:
+            parser.error(f"chunk seed {seed} would reach the held-out truths' seeds (from {SEED_LIMIT}); use fewer, larger chunks")
         t = time.perf_counter()
-        parts.append(amortised.simulate(main_pairs, seed=a.seed + 2, batch=a.batch))
-        main_seconds = time.perf_counter() - t
-    left_out: dict[str, int] = {}
-    for part in parts:
-        for k, v in part.left_out.items():
-            left_out[k] = left_out.get(k, 0) + v
-    draws = PriorSample(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("parameters", "observations", "heart_rate", "base")),
-                        parts[0].names, sum(p.tried for p in parts), left_out)
-    sim_seconds = time.perf_counter() - started
-    estimator = amortised.train(draws, seed=a.seed, batch_size=a.batch_size, learning_rate=a.learning_rate, max_seconds=a.train_seconds,
+        parts.append(amortised.simulate(min(a.chunk, a.pairs - sum(len(p.parameters) for p in parts)), seed=seed, batch=a.batch))
+        chunk_seconds.append(time.perf_counter() - t)
+        seeds.append(seed)
+        if a.draws:
+            amortised.save_draws(PriorSample.concatenate(parts), a.draws, seeds=seeds)
+    draws = PriorSample.concatenate(parts)
+    steady = [len(p.parameters) / s for p, s in zip(parts[-len(chunk_seconds):][1:], chunk_seconds[1:])]
+    estimator = amortised.train(draws, seed=a.seed, copies=a.copies, batch_size=a.batch_size, learning_rate=a.learning_rate, max_seconds=a.train_seconds,
                                 code_version=a.code_version)
     path = amortised.save(estimator, a.out)
     training = estimator.meta["training"]
     print(json.dumps({
-        "pairs": len(draws.parameters), "tried": draws.tried, "left_out": left_out, "batch": a.batch,
-        "simulation_seconds": sim_seconds, "compile_seconds": compile_seconds, "pilot_pairs_per_second": rate,
-        "tried_per_second": draws.tried / sim_seconds,
-        "pairs_per_second": (len(parts[-1].parameters) / main_seconds) if main_seconds else rate,
+        "pairs": len(draws.parameters), "tried": draws.tried, "left_out": draws.left_out, "batch": a.batch, "chunks": len(seeds),
+        "draws": a.draws, "draws_made_by": made_by, "chunk_seconds": chunk_seconds,
+        "pairs_per_second": statistics.median(steady) if steady else None,
         "training_seconds": training["seconds"], "epochs": training["epochs"], "best_validation_loss": training["best_validation_loss"],
         "validation_loss": training["validation_loss"], "artefact": str(path), "code_version": estimator.meta["code_version"],
     }, indent=2))

@@ -122,6 +122,19 @@ class PriorSample:
     tried: int
     left_out: dict[str, int]
 
+    @classmethod
+    def concatenate(cls, parts: Sequence[PriorSample]) -> PriorSample:
+        """One sample of all ``parts`` (draws of the same targets over the same patients), in order;
+        ``tried`` and ``left_out`` are summed."""
+        if not parts or any(p.names != parts[0].names for p in parts):
+            raise InputError(f"cannot concatenate prior samples of different targets {[p.names for p in parts]}")
+        left_out: dict[str, int] = {}
+        for part in parts:
+            for reason, count in part.left_out.items():
+                left_out[reason] = left_out.get(reason, 0) + count
+        arrays = (np.concatenate([getattr(p, f) for p in parts]) for f in ("parameters", "observations", "heart_rate", "base"))
+        return cls(*arrays, parts[0].names, sum(p.tried for p in parts), left_out)
+
 
 def prior_sample(
     n: int,

@@ -92,6 +92,34 @@ def test_artefact_round_trips_and_bad_artefacts_say_what_is_wrong(data, tmp_path
             amortised.load(tmp_path / f"{name}.npz")
 
 
+def test_training_pairs_file_round_trips_concatenates_and_refuses_other_priors(data, tmp_path):
+    """A long simulation's pairs survive on disk (scripts/train_amortised.py --draws): chunks
+    concatenate in order with their counts summed, read back bit for bit, and a file of another
+    prior or of other shapes is refused with what differs."""
+    draws, held, _ = data
+    first = PriorSample(*(getattr(draws, f)[:50] for f in ("parameters", "observations", "heart_rate", "base")), draws.names, 300, {"implausible": 200})
+    both = PriorSample.concatenate([first, held])
+    assert len(both.parameters) == 50 + HELD_OUT and both.tried == 300 + held.tried
+    assert both.left_out["implausible"] == 200 + held.left_out["implausible"]
+    np.testing.assert_array_equal(both.parameters[50:], held.parameters)
+    path = amortised.save_draws(both, tmp_path / "draws.npz", seeds=[1, 2])
+    back, seeds, code_version = amortised.load_draws(path)
+    assert seeds == [1, 2] and code_version and back.names == both.names and (back.tried, back.left_out) == (both.tried, both.left_out)
+    for f in ("parameters", "observations", "heart_rate", "base"):
+        np.testing.assert_array_equal(getattr(back, f), getattr(both, f))
+    with pytest.raises(ArchiveError, match="prior"):
+        amortised.load_draws(path, heart_rate=(50.0, 100.0))
+    arrays, meta = archive.load(path)
+    archive.save(tmp_path / "short.npz", {**arrays, "base": arrays["base"][:3]}, meta)
+    with pytest.raises(ArchiveError, match="shapes"):
+        amortised.load_draws(tmp_path / "short.npz")
+    path = amortised.save(data[2], tmp_path / "est.npz")
+    with pytest.raises(ArchiveError, match="not 'lvenv-amortised-draws' pairs"):
+        amortised.load_draws(path)
+    with pytest.raises(InputError, match="different targets"):
+        PriorSample.concatenate([first, dataclasses.replace(held, names=("EF",))])
+
+
 def test_observations_outside_the_training_set_are_flagged(data):
     _, held, estimator = data
     rng = np.random.default_rng(4)
