@@ -60,7 +60,7 @@ from lvenv.params import CellParams, LOParams
 from lvenv.trained import DATA, TrainedLO
 from lvenv.validation import InputError, integer, real
 
-__all__ = ["ARTEFACT", "ARTEFACT_ENV", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "load_regression", "from_geometry", "predicted_maps", "map_draws", "unload", "inflate", "unload_to_volume"]
+__all__ = ["ARTEFACT", "ARTEFACT_ENV", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "log_normal", "load_regression", "from_geometry", "predicted_maps", "map_draws", "unload", "inflate", "unload_to_volume"]
 
 ARTEFACT = DATA / "anatomy" / "regression.json"
 FORMAT_VERSION = 2
@@ -73,6 +73,13 @@ NU = 2.5
 #: Smallest length scale of a standardised input, and smallest white-noise variance of a
 #: standardised output (module docstring).
 MIN_LENGTH_SCALE, MIN_NOISE = 0.3, 1e-2
+
+
+def log_normal(mean: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The median and sd (physical units) of a log-normal whose log has ``mean`` and ``sd``:
+    how a log output's prediction is reported (module docstring)."""
+    median = np.exp(mean)
+    return median, median * np.sqrt(np.expm1(sd**2))
 
 
 class ExtrapolationWarning(UserWarning):
@@ -199,7 +206,7 @@ class Regression:
         mean, sd = self.latent(geometries, names)
         for name in mean:
             if self.outputs[name].get("log"):
-                mean[name], sd[name] = np.exp(mean[name]), np.exp(mean[name]) * np.sqrt(np.expm1(sd[name] ** 2))
+                mean[name], sd[name] = log_normal(mean[name], sd[name])
         return mean, sd
 
     def to_dict(self) -> dict[str, Any]:

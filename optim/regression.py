@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from lvenv import archive
-from lvenv.anatomy import ARTEFACT, INPUTS, LO_OUTPUTS, Regression, kernel
+from lvenv.anatomy import ARTEFACT, INPUTS, LO_OUTPUTS, Regression, kernel, log_normal
 from lvenv.params import LOParams
 from lvenv.validation import InputError, integer
 from optim import campaign
@@ -124,7 +124,7 @@ def cross_validate(x: np.ndarray, y: dict[str, np.ndarray], folds: int = 5, rest
             mean[test], sd[test] = m * y_scale + y_mean, s * y_scale
         covered = np.abs(target - mean) <= 2.0 * sd
         if log:
-            mean, sd = np.exp(mean), np.exp(mean) * np.sqrt(np.expm1(sd**2))
+            mean, sd = log_normal(mean, sd)
         residual = values - mean
         total = np.sum((values - values.mean()) ** 2)
         out[name] = {"r2": float(1.0 - np.sum(residual**2) / total) if total > 0 else float("nan"), "rmse": float(np.sqrt(np.mean(residual**2))),
@@ -152,7 +152,7 @@ def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int =
         if is_fixed(values):
             specs[name], ys[name] = {"mean": float(values[0]), "fixed": True}, np.zeros_like(values)
             continue
-        log = in_log(name, values)
+        log = cv[name]["log"]
         target = np.log(values) if log else values
         y_mean, y_scale = _scaling(target)
         ys[name] = (target - y_mean) / y_scale
