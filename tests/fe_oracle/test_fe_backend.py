@@ -72,6 +72,31 @@ def test_thick_walled_sphere_matches_analytic():
     np.testing.assert_allclose(v_fe, v_exact, rtol=0.01)
 
 
+def test_newton_stops_at_a_pressure_scaled_residual(monkeypatch):
+    """Newton stops below the nodal force of PRESSURE_TOLERANCE on the endocardium: that moves the
+    volume by far less than a beat's volume tolerance (1e-4 V0), in fewer iterations than a stop
+    100 times tighter."""
+    from fe_oracle import mechanics
+    from fe_oracle.dolfinx_backend import LVModel
+    from fe_oracle.passive import inflate
+
+    def inflated(tolerance):
+        monkeypatch.setattr(mechanics, "PRESSURE_TOLERANCE", tolerance)
+        model = LVModel(N_UNLOADED, TINY_H, fe_oracle.Guccione(), None)
+        reference_force = tolerance * model.solid._load_norm()  # on the unloaded wall
+        log = []
+        volumes = inflate(model.solid, [0.0, 1.0], log=log)
+        atol = model.solid.snes.getTolerances()[1]
+        return volumes[-1], log, atol, reference_force
+
+    v, log, atol, expected = inflated(mechanics.PRESSURE_TOLERANCE)
+    v_tight, log_tight, _, _ = inflated(mechanics.PRESSURE_TOLERANCE / 100)
+    assert atol == pytest.approx(expected, rel=1e-12) and atol > 0
+    assert all(r["residual"] < atol for r in log if r["converged"])
+    assert abs(v - v_tight) < 1e-3 * 1e-4 * cavity_volume(N_UNLOADED)
+    assert sum(r["iterations"] for r in log) < sum(r["iterations"] for r in log_tight)
+
+
 def test_fibres_and_activation():
     from fe_oracle.activation import activation_times
     from fe_oracle.fibres import fibre_field
