@@ -464,7 +464,8 @@ def train(
     """Train an estimator on ``draws`` (an :class:`optim.identify.PriorSample` of
     :data:`OBSERVED` over ``bases`` and ``heart_rate``, e.g. from :func:`simulate`), each pair
     used ``copies`` times with fresh noise and masks (module docstring). The first ``val_prop``
-    of the shuffled rows are the validation set; Adam (``learning_rate``, gradients clipped to
+    of the shuffled pairs, each with all its copies, are the validation set
+    (:func:`_validation_first`); Adam (``learning_rate``, gradients clipped to
     norm 10) on minibatches of ``batch_size`` for at most ``max_epochs`` epochs, stopping after
     ``patience`` epochs without a better validation loss or once ``max_seconds`` have passed at
     an epoch's end, and keeping the epoch with the best validation loss. ``code_version``: for
@@ -481,7 +482,7 @@ def train(
     x = np.tile(draws.parameters, (copies, 1))
     obs = _noisy_masked(np.tile(draws.observations, (copies, 1)), sigma, rng)
     hr, base = np.tile(draws.heart_rate, copies), np.tile(draws.base, copies)
-    order = rng.permutation(len(x))
+    order, n_val = _validation_first(len(draws.parameters), copies, val_prop, rng)
     x, obs, hr, base = x[order], obs[order], hr[order], base[order]
     z = to_logit(ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).to_unit(x))
     geometry = np.array([[getattr(_base_heart(b).geometry, g) for g in GEOMETRY] for b in bases])[base]
@@ -493,7 +494,6 @@ def train(
             "prior": _prior_meta(bases, heart_rate), "noise": dict(zip(OBSERVED, map(float, sigma))),
             "architecture": dataclasses.asdict(architecture)}
     estimator = Estimator(architecture.build(seed), architecture, arrays, meta)
-    n_val = max(1, int(val_prop * len(x)))
     theta, cond = (z - arrays["theta_mean"]) / arrays["theta_sd"], estimator.condition(obs, hr, base)
     started = time.perf_counter()
     flow, losses = _fit(estimator.flow, (theta[n_val:], cond[n_val:]), (theta[:n_val], cond[:n_val]), seed=seed, batch_size=batch_size,
@@ -518,6 +518,20 @@ def train(
                         "best_validation_loss": float(min(losses["val"]))}
     meta["code_version"] = code_version or _code_version()
     return Estimator(flow, architecture, arrays, meta)
+
+
+def _validation_first(n_pairs: int, copies: int, val_prop: float, rng: np.random.Generator) -> tuple[np.ndarray, int]:
+    """(order, n_val): a shuffle of the ``copies * n_pairs`` rows of :func:`train` (row i holds
+    pair i mod n_pairs) whose first n_val rows are every copy of the first
+    max(1, int(val_prop n_pairs)) pairs met in the shuffle. No pair is in both sets with only its
+    noise changed, which would leak training pairs into the early stopping. One copy: the
+    shuffle itself, split at n_val."""
+    order = rng.permutation(copies * n_pairs)
+    pair = order % n_pairs
+    met = pair[np.sort(np.unique(pair, return_index=True)[1])]
+    held = np.zeros(n_pairs, dtype=bool)
+    held[met[: max(1, int(val_prop * n_pairs))]] = True
+    return np.concatenate([order[held[pair]], order[~held[pair]]]), int(np.count_nonzero(held[pair]))
 
 
 def _fit(flow: Any, train_set: tuple[np.ndarray, np.ndarray], val_set: tuple[np.ndarray, np.ndarray], *, seed: int, batch_size: int,

@@ -30,6 +30,18 @@ def data():
     return draws, split(slice(TRAIN, None)), estimator
 
 
+def test_validation_pairs_have_no_copy_in_training():
+    """With copies, a validation pair's every copy is a validation row, so early stopping never sees
+    a training pair with only its noise changed; with one copy the split is the plain shuffle's."""
+    n, copies = 50, 3
+    order, n_val = amortised._validation_first(n, copies, 0.2, np.random.default_rng(0))
+    assert sorted(order) == list(range(copies * n))
+    val, train = set(order[:n_val] % n), set(order[n_val:] % n)
+    assert not val & train and len(val) == 10 and n_val == copies * 10 and len(train) == n - 10
+    plain, n_plain = amortised._validation_first(n, 1, 0.2, np.random.default_rng(0))
+    assert n_plain == 10 and np.array_equal(plain, np.random.default_rng(0).permutation(n))
+
+
 def test_training_pairs_come_from_the_prior_with_failures_counted_by_status(data):
     draws, _, estimator = data
     assert draws.parameters.shape == (TRAIN + HELD_OUT, 6) and draws.observations.shape == (TRAIN + HELD_OUT, len(amortised.OBSERVED))
