@@ -48,9 +48,9 @@ from fe_oracle.passive import inflate
 
 __all__ = ["PREDICTOR_POINTS", "CoupledBeat", "zero_d_step"]
 
-#: Accepted steps (t, P, u) a step's first trial extrapolates from: 3, quadratic in t. On the N
-#: beat ② (h = 10 mm, dt = 5 ms) that takes 21 % fewer Newton iterations than linear (2 points);
-#: cubic (4) takes more than quadratic.
+#: How many accepted steps (time, pressure and displacement of each) the first trial of a step
+#: extrapolates from: 3, quadratic in time. On the N beat ② (h = 10 mm, dt = 5 ms) that takes
+#: 21 % fewer Newton iterations than linear (2 points); cubic (4) takes more than quadratic.
 PREDICTOR_POINTS = 3
 _S = lvenv.cell.STATE_NAMES.index("S")
 _W = lvenv.cell.STATE_NAMES.index("W")
