@@ -531,7 +531,8 @@ def _validation_first(n_pairs: int, copies: int, val_prop: float, rng: np.random
     met = pair[np.sort(np.unique(pair, return_index=True)[1])]
     held = np.zeros(n_pairs, dtype=bool)
     held[met[: max(1, int(val_prop * n_pairs))]] = True
-    return np.concatenate([order[held[pair]], order[~held[pair]]]), int(np.count_nonzero(held[pair]))
+    validation = held[pair]
+    return np.concatenate([order[validation], order[~validation]]), int(np.count_nonzero(validation))
 
 
 def _fit(flow: Any, train_set: tuple[np.ndarray, np.ndarray], val_set: tuple[np.ndarray, np.ndarray], *, seed: int, batch_size: int,
