@@ -13,7 +13,10 @@ coordinate of its identification bound (log scale on log axes, where the prior i
 
 Also the worst of each over the patients, the fraction within the acceptance, the seconds of
 each method, and ``pairs_<patient>.png`` in ``--out`` for the built-in patients (both posteriors
-overlaid). MCMC costs about 100 s per patient on 2 quiet cores.
+overlaid). MCMC costs about 100 s per patient on 2 quiet cores, so every finished patient is
+checkpointed in ``--out``/checkpoint.npz (:func:`lvenv.archive.save_records`): the same command
+resumes after an interruption, and refuses a checkpoint written with other settings or another
+estimator.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lvenv import jitcache
+from lvenv import archive, jitcache
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.patients import BUILTIN, builtin
 from lvenv.plots import pairs_figure
@@ -67,15 +70,24 @@ def main() -> None:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     space = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS)
-    rows, mcmc_seconds = {}, []
+    checkpoint = out / "checkpoint.npz"
+    settings = {"truths": a.truths, "samples": a.samples, "seed": a.seed, "sampler": sampler_options(a),
+                "estimator": {k: estimator.meta[k] for k in ("version", "training", "code_version")}}
+    done = {r["patient"]: r for r in archive.load_records(checkpoint, settings)}
     for p, f in zip(patients, fast):
+        if p.name in done:
+            continue
         t = time.perf_counter()
         m = posterior(p, seed=a.seed, **sampler_options(a))
-        mcmc_seconds.append(time.perf_counter() - t)
-        rows[p.name] = {"compare": compare(f, m), "amortised": {"median": f.median, "interval_90": f.interval_90},
+        seconds = time.perf_counter() - t
+        done[p.name] = {"patient": p.name, "mcmc_seconds": seconds, "compare": compare(f, m),
+                        "amortised": {"median": f.median, "interval_90": f.interval_90},
                         "mcmc": {"median": m.median, "interval_90": m.interval_90, "rhat": m.rhat}, "out_of_distribution": f.out_of_distribution}
         if p.name in BUILTIN:
             pairs_figure({"amortised": f.samples, "MCMC": m.samples}, out / f"pairs_{p.name}.png", log=dict(zip(space.names, space.log)))
+        archive.save_records(checkpoint, json.loads(json.dumps(list(done.values()), default=float)), settings)
+    rows = {p.name: done[p.name] for p in patients}
+    mcmc_seconds = [r["mcmc_seconds"] for r in rows.values()]
     shift = np.array([[r["compare"][n]["median_shift_sd"] for n in space.names] for r in rows.values()])
     ratio = np.array([[r["compare"][n]["width_ratio"] for n in space.names] for r in rows.values()])
     print(json.dumps({
