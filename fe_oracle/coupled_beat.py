@@ -19,6 +19,11 @@ Coupled beat (DESIGN §1.2, §4), one time step t → t + dt:
    tolerance never accumulates into a drift of blood volume.
 3. Corrector: the cell state is advanced again with the converged stretch λₙ₊₁.
 
+With ``wall_quantiles`` (fractions in [0, 1]) every accepted step also records the
+distribution over the wall's quadrature points of the fibre stretch λ, its rate dλ/dt (1/s)
+and the active tension Ta (kPa): those quantiles and the mean of each (:meth:`CoupledBeat.wall_sample`),
+for comparing the wall with a single LO cell (issue 30's diagnosis).
+
 A failed Newton solve or secant halves dt (``max_cuts`` times at most), then raises
 :class:`~fe_oracle.result.OracleDidNotConverge`. Initial state: the LV at passive equilibrium
 with Pat (Ta = 0), cells at diastolic rest at their local stretch, P_c = Pc0 (closed loop: the
@@ -46,12 +51,15 @@ from fe_oracle.activation import activation_times
 from fe_oracle.mechanics import interpolate_at_quadrature, quadrature_function
 from fe_oracle.passive import inflate
 
-__all__ = ["PREDICTOR_POINTS", "CoupledBeat", "zero_d_step"]
+__all__ = ["PREDICTOR_POINTS", "WALL_FIELDS", "CoupledBeat", "zero_d_step"]
 
 #: How many accepted steps (time, pressure and displacement of each) the first trial of a step
 #: extrapolates from: 3, quadratic in time. On the N beat ② (h = 10 mm, dt = 5 ms) that takes
 #: 21 % fewer Newton iterations than linear (2 points); cubic (4) takes more than quadratic.
 PREDICTOR_POINTS = 3
+#: The wall quantities :meth:`CoupledBeat.wall_sample` records: fibre stretch λ, its rate dλ/dt
+#: (1/s) and the active tension Ta (kPa).
+WALL_FIELDS = ("lam", "rate", "Ta")
 _S = lvenv.cell.STATE_NAMES.index("S")
 _W = lvenv.cell.STATE_NAMES.index("W")
 
@@ -79,8 +87,10 @@ def zero_d_step(p_lv, v, p_c, p_at, dt, circ: Circulation):
 class CoupledBeat:
     """Mutable state of one coupled FE run on an :class:`~fe_oracle.dolfinx_backend.LVModel`."""
 
-    def __init__(self, model, circ: Circulation, cell: CellParams, *, dt, volume_tol, max_cuts, n_sub, log, synchronous=False):
+    def __init__(self, model, circ: Circulation, cell: CellParams, *, dt, volume_tol, max_cuts, n_sub, log, synchronous=False, wall_quantiles=None):
         self.m, self.circ, self.cell = model, circ, cell
+        self.wall_quantiles = None if wall_quantiles is None else np.asarray(wall_quantiles, float)
+        self.wall: list[np.ndarray] = []
         self.dt_nominal, self.volume_tol, self.max_cuts, self.n_sub, self.log = dt, volume_tol, max_cuts, n_sub, log
         mesh = model.tm.mesh
         F = ufl.Identity(3) + ufl.grad(model.solid.u)
@@ -124,6 +134,18 @@ class CoupledBeat:
         self.p_ao = float(circ_mod.aortic_pressure(self.p_c, q, circ))
         self.lam_min, self.lam_max = self._global_range(self.lam)
         self.lam_p01, self.lam_p99 = np.percentile(self.lam, [1.0, 99.0])
+        self._record_wall()
+
+    def wall_sample(self) -> np.ndarray:
+        """The wall now: for each of :data:`WALL_FIELDS`, its quantiles at ``wall_quantiles``
+        over the quadrature points and then its mean; shape (3, len(wall_quantiles) + 1).
+        Serial only (a rank sees its own points)."""
+        fields = (self.lam, self.rate, cellq.tension(self.y, self.lam, self.cell))
+        return np.array([np.concatenate([np.quantile(f, self.wall_quantiles), [f.mean()]]) for f in fields])
+
+    def _record_wall(self):
+        if self.wall_quantiles is not None:
+            self.wall.append(self.wall_sample())
 
     def _global_range(self, values) -> tuple[float, float]:
         comm = self.m.solid.comm
@@ -237,4 +259,5 @@ class CoupledBeat:
         self.history = (self.history + [(self.t, p, solid.u.x.array.copy())])[-PREDICTOR_POINTS:]
         self.v0d, self.p_c, self.p_at, self.p_ao = v0d, p_c, p_at, p_ao
         self.v_fe = v_fe
+        self._record_wall()
         return True

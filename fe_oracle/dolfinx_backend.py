@@ -80,9 +80,13 @@ def run_passive(geometry, material, mesh_size, pressures, *, max_cuts=6, newton_
 
 
 def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=None, volume_tol=None, max_cuts=4, newton_max_it=25, n_sub=5, progress=False,
-             synchronous=False):
+             synchronous=False, wall_quantiles=None):
     """Coupled active run over ``beats`` beats (or ``duration`` s). Returns (traces, metadata, log).
     ``synchronous``: every point activates at t = 0 instead of at its eikonal arrival time.
+    ``wall_quantiles`` (fractions; serial runs only): the traces gain ``wall``, shape
+    (samples, 3, len(wall_quantiles) + 1): per sample the quantiles and the mean over the
+    quadrature points of :data:`fe_oracle.coupled_beat.WALL_FIELDS`, and the metadata
+    ``activation_quantiles_s``, the same quantiles of the points' activation times.
 
     Metadata ``stretch_min``/``stretch_max``: extremes of the fibre stretch over all quadrature
     points and steps; ``stretch_p01``/``stretch_p99``: extremes over steps of its 1st and 99th
@@ -93,7 +97,9 @@ def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=N
     info = model.mesh_info()
     log: list = []
     tol = 1e-4 * info["V0_analytic_ml"] if volume_tol is None else volume_tol
-    beat = CoupledBeat(model, circ, cell, dt=dt, volume_tol=tol, max_cuts=max_cuts, n_sub=n_sub, log=log, synchronous=synchronous)
+    if wall_quantiles is not None and model.solid.comm.size > 1:
+        raise ValueError("wall_quantiles needs a serial run (quantiles over every rank's points are not gathered)")
+    beat = CoupledBeat(model, circ, cell, dt=dt, volume_tol=tol, max_cuts=max_cuts, n_sub=n_sub, log=log, synchronous=synchronous, wall_quantiles=wall_quantiles)
     beat.initialise()
     t_end = beats * beat.period if duration is None else duration
     rows = [(0.0, beat.v0d, beat.p_lv, beat.p_ao, beat.p_c, beat.p_at)]
@@ -115,6 +121,10 @@ def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=N
             bar.set_postfix_str(f"P_lv {beat.p_lv:.2f} kPa, V {beat.v0d:.1f} ml", refresh=False)
     arr = np.array(rows)
     traces = {"t": arr[:, 0], "V": arr[:, 1], "P_lv": arr[:, 2], "P_ao": arr[:, 3], "P_c": arr[:, 4], "P_at": arr[:, 5]}
+    wall = {}
+    if wall_quantiles is not None:
+        traces["wall"] = np.array(beat.wall)
+        wall = {"activation_quantiles_s": np.quantile(beat.t_act, wall_quantiles).tolist()}
     meta = dict(
         info,
         wall_s=time.perf_counter() - t0,
@@ -131,5 +141,6 @@ def run_beat(geometry, circ, cell, material, mesh_size, dt, beats, *, duration=N
         activation_time_max_s=beat._global_range(beat.t_act)[1],
         period_s=beat.period,
         volume_tol_ml=tol,
+        **wall,
     )
     return traces, meta, log

@@ -16,7 +16,11 @@ factored form. The two arrangements close the n laws with the ventricle's V and 
   μ1_ξ = μ1 and w_ξ linear over ``spread`` (default [0.6, 1.0]).
 
 Element values are ``spread[0] + (spread[1] − spread[0]) · linspace(0, 1, n)`` (both ends
-included); one element takes the midpoint. With n = 1 and the single element at μ1 (parallel)
+included); one element takes the midpoint. ``onsets`` (optional, s) give each element its own
+calcium onset: element ξ's transient starts max(delay + onset_ξ, 0) after the beat's onset
+(:func:`lvenv.coupling.calcium` with that delay), so that elements can stand for regions of the
+wall that the activation front reaches at different times; by default every element starts at
+the LO heart's ``delay``. With n = 1 and the single element at μ1 (parallel)
 or w = 1 (series) both arrangements are the single-element LO heart of :mod:`lvenv.model`.
 
 **Distortion in ζ̃ form.** The cells' distortion ODE dζ/dt = A dλ/dt − c ζ (A = Aeff rs /
@@ -93,6 +97,7 @@ __all__ = [
     "ARRANGEMENTS",
     "DEFAULT_SPREAD",
     "MAX_ELEMENTS",
+    "MAX_ONSET_S",
     "Arrangement",
     "ElementParams",
     "State",
@@ -111,6 +116,8 @@ ARRANGEMENTS = ("parallel", "series")
 DEFAULT_SPREAD = {"parallel": (0.01, 0.179), "series": (0.6, 1.0)}
 #: Largest number of elements accepted at the Python boundary.
 MAX_ELEMENTS = 4096
+#: Largest magnitude of an element's onset relative to the LO delay (s).
+MAX_ONSET_S = 0.3
 _W_RANGE = (1e-3, 10.0)  # allowed series weights w_ξ (1)
 _ZS, _ZW = cell.STATE_NAMES.index("zeta_s"), cell.STATE_NAMES.index("zeta_w")
 _NEWTON_MAX_IT = 20
@@ -119,8 +126,9 @@ _N_GLOBAL = 3  # V, P_c, P_at
 
 @dataclasses.dataclass(frozen=True)
 class Arrangement:
-    """How the elements are arranged: ``kind`` ∈ {"parallel", "series"}, ``n_elements`` and the
-    ``spread`` of μ1_ξ (parallel) or w_ξ (series), linear over [spread[0], spread[1]].
+    """How the elements are arranged: ``kind`` ∈ {"parallel", "series"}, ``n_elements``, the
+    ``spread`` of μ1_ξ (parallel) or w_ξ (series), linear over [spread[0], spread[1]], and the
+    elements' calcium ``onsets`` (s, relative to the LO delay; ``None``: all 0).
 
     ``spread=None`` takes :data:`DEFAULT_SPREAD`. Validated on construction (``ValueError``
     naming the field, the value and what is allowed).
@@ -129,6 +137,7 @@ class Arrangement:
     kind: str
     n_elements: int = 256
     spread: tuple[float, float] | None = None
+    onsets: tuple[float, ...] | None = None
 
     def __post_init__(self):
         choice("arrangement", self.kind, ARRANGEMENTS)
@@ -141,6 +150,14 @@ class Arrangement:
         low = real(f"{name}[0]", spread[0], lo, hi)
         high = real(f"{name}[1]", spread[1], low, hi)
         object.__setattr__(self, "spread", (low, high))
+        if self.onsets is not None:
+            if np.ndim(self.onsets) != 1 or len(self.onsets) != self.n_elements:
+                raise ValueError(f"onsets = {self.onsets!r} must give one onset (s) per element, {self.n_elements} in all")
+            object.__setattr__(self, "onsets", tuple(real(f"onsets[{i}]", x, -MAX_ONSET_S, MAX_ONSET_S) for i, x in enumerate(self.onsets)))
+
+    def element_onsets(self) -> np.ndarray:
+        """Onset of each element relative to the LO delay (s), shape ``(n_elements,)``."""
+        return np.zeros(self.n_elements) if self.onsets is None else np.array(self.onsets, float)
 
     def element_values(self) -> np.ndarray:
         """μ1_ξ (parallel) or w_ξ (series), shape ``(n_elements,)``."""
@@ -153,7 +170,7 @@ class Arrangement:
 @dataclasses.dataclass(frozen=True)
 class ElementParams:
     """What the jitted core needs: V0 (ml) and the three parts per member ``(B,)``, and the
-    per-element μ1_ξ and w_ξ ``(n, B)``."""
+    per-element μ1_ξ, w_ξ and calcium onset (s, relative to the LO delay) ``(n, B)``."""
 
     v0: jax.Array
     lo: LOParams
@@ -161,6 +178,7 @@ class ElementParams:
     circ: circulation.Circulation
     mu1: jax.Array
     w: jax.Array
+    onset: jax.Array
 
 
 class State(NamedTuple):
@@ -183,7 +201,8 @@ def element_params(heart: Heart, arrangement: Arrangement) -> ElementParams:
         mu1, w = values, np.ones_like(values)
     else:
         mu1, w = np.broadcast_to(np.asarray(mp.lo.mu1, float), values.shape).copy(), values
-    return ElementParams(v0=mp.v0, lo=mp.lo, cell=mp.cell, circ=mp.circ, mu1=mu1, w=w)
+    onset = arrangement.element_onsets()[:, None] * np.ones(n_members)
+    return ElementParams(v0=mp.v0, lo=mp.lo, cell=mp.cell, circ=mp.circ, mu1=mu1, w=w, onset=onset)
 
 
 def _element_lo(p: ElementParams) -> LOParams:
@@ -406,8 +425,9 @@ def run(p: ElementParams, state0: State, newton_tol, *, kind: str, steps: int, b
     period = circulation.beat_period(p.circ)
     h = period / steps
     k = cell.rates(p.cell)
-    t = jnp.arange(steps + 1, dtype=h.dtype)[:, None] * h
-    ca, ca_rate = coupling.calcium(t, p.lo, p.cell), coupling.calcium_rate(t, p.lo, p.cell)
+    t = jnp.arange(steps + 1, dtype=h.dtype)[:, None, None] * h
+    lo_el = dataclasses.replace(p.lo, delay=jnp.maximum(p.lo.delay + p.onset, 0.0))  # each element's onset (n, B)
+    ca, ca_rate = coupling.calcium(t, lo_el, p.cell), coupling.calcium_rate(t, lo_el, p.cell)  # (steps + 1, n, B)
     v_el, p_lv, res0, it0 = _algebraic(kind, p, k, state0.cells, state0.circ[0], state0.v_el, state0.p_lv, newton_tol)
     state = State(state0.cells, state0.circ, v_el, p_lv)
 

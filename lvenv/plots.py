@@ -156,7 +156,9 @@ def histogram_figure(values: np.ndarray, path: str | os.PathLike[str], xlabel: s
 def generalisation_figure(rows: list[Mapping], path: str | os.PathLike[str], columns: int) -> Path:
     """The paper's Fig. 7 panel: per scenario (``columns`` per heart) V and P_lv of the oracle
     (solid; ``row["oracle"]`` with ``t``, ``V``, ``P_lv``) and the LO heart (dashed; ``row["lo"]``,
-    :class:`~lvenv.simulation.Traces`), titled with the scenario and its C."""
+    the same keys), titled with the scenario and its C. A row's ``candidates`` (optional, a
+    label → traces mapping, the same for every row) adds one coloured line per candidate LO
+    heart, with a legend."""
     hearts = -(-len(rows) // columns)
     path, fig, axes = _figure(path, columns, width=2.6 * columns, nrows=2 * hearts, height=4.4 * hearts)
     for i, r in enumerate(rows):
@@ -164,8 +166,12 @@ def generalisation_figure(rows: list[Mapping], path: str | os.PathLike[str], col
         for k, (key, unit) in enumerate((("V", "ml"), ("P_lv", "mmHg"))):
             ax = axes[2 * h + k, j]
             show = (lambda v: kpa_to_mmhg(np.asarray(v))) if key == "P_lv" else np.asarray
-            ax.plot(r["oracle"]["t"], show(r["oracle"][key]), "k-", lw=1.2)
-            ax.plot(r["lo"].t, show(getattr(r["lo"], key)), "C3--", lw=1.2)
+            ax.plot(r["oracle"]["t"], show(r["oracle"][key]), "k-", lw=1.2, label="FE")
+            ax.plot(r["lo"]["t"], show(r["lo"][key]), "C3--", lw=1.2, label="LO")
+            for c, (label, tr) in enumerate(r.get("candidates", {}).items()):
+                ax.plot(tr["t"], show(tr[key]), color=f"C{c}", ls=":", lw=1.2, label=label)
+            if i == 0 and k == 0 and r.get("candidates"):
+                ax.legend(fontsize=6)
             ax.set_title(f"{r['heart']} {r['scenario']}\nC {100 * r['C']:.1f} %" if k == 0 else "", fontsize=8)
             ax.set_ylabel(f"{key} ({unit})" if j == 0 else "", fontsize=8)
             ax.tick_params(labelsize=7)

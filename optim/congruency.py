@@ -21,6 +21,11 @@ all from the documented initial state, then
    fit is repeated with the LO activation delay d (`lvenv.coupling.calcium`) trained alongside
    {μ1, μ2, γ}, and kept if it lowers C; both C are reported.
 
+**Multi-element LO hearts.** `fit_active`, `run_congruency` and `train_on` take an
+``arrangement`` (`lvenv.multielement.Arrangement`): the LO beats then come from
+`lvenv.multielement.simulate` with that arrangement instead of the single-cell `lvenv.simulate`,
+for comparing candidate low-order hearts against the same oracle runs (issue 30).
+
 The result, `lvenv.trained.TrainedLO`, holds the nine parameters, C per training beat, the
 passive fit's residual and the provenance (backend, mesh size, time step, the oracle runs' cache
 keys and the code versions); it saves to and loads from JSON, and `TrainedLO.heart()` builds a
@@ -49,7 +54,7 @@ from scipy.optimize import least_squares
 import fe_oracle
 from fe_oracle import cache as oracle_cache
 from fe_oracle.cases import Passive
-from lvenv import coupling, presets
+from lvenv import coupling, multielement, presets
 from lvenv.geometry import Geometry, cavity_volume
 from lvenv.model import IDX_PAT, IDX_PC
 from lvenv.params import CellParams, Heart, LOParams
@@ -63,7 +68,7 @@ from optim.protocol import Bounds, padded, run
 
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
-    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
+    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
     "train", "train_on", "check_fidelity",
 ]
 
@@ -141,17 +146,29 @@ def training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams
     return [Heart(geometry=geometry, lo=lo, cell=cell, circulation=circ) for lo in los for circ in base]
 
 
-def run_congruency(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000) -> np.ndarray:
-    """C per (candidate, condition) of LO candidates against ``data``, shape (len(los), 3),
-    one batched simulation; NaN where the LO beat failed."""
+def lo_beats(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
+             arrangement: multielement.Arrangement | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One LO beat per (candidate, condition) of :func:`training_hearts`, one batched simulation:
+    (usable (members,), t (s), V (ml), P_lv (kPa), each (members, samples)). ``arrangement``:
+    a multi-element heart (`lvenv.multielement.simulate`) instead of the single cell."""
     hearts = training_hearts(data.geometry, data.cell, los)
-    sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
+    if arrangement is None:
+        sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
+        return is_usable(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv
+    sim = multielement.simulate(hearts, arrangement, beats=1, steps_per_beat=steps_per_beat)
+    return is_usable(sim.status), sim.traces["t"], sim.traces["V"], sim.traces["P_lv"]
+
+
+def run_congruency(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
+                   arrangement: multielement.Arrangement | None = None) -> np.ndarray:
+    """C per (candidate, condition) of LO candidates against ``data``, shape (len(los), 3),
+    one batched simulation (:func:`lo_beats`); NaN where the LO beat failed."""
+    usable, t, v, p = lo_beats(data, los, steps_per_beat, arrangement)
     out = np.full((len(los), len(CONDITIONS)), np.nan)
     for j, k in enumerate(CONDITIONS):
-        rows = np.arange(j, len(hearts), len(CONDITIONS))
-        ok = is_usable(sim.status[rows])
-        bracket = congruency(data.beats[k].traces, sim.traces.t[rows[0]], sim.traces.V[rows], sim.traces.P_lv[rows])
-        out[:, j] = np.where(ok, np.sqrt(bracket), np.nan)
+        rows = np.arange(j, len(usable), len(CONDITIONS))
+        bracket = congruency(data.beats[k].traces, t[rows[0]], v[rows], p[rows])
+        out[:, j] = np.where(usable[rows], np.sqrt(bracket), np.nan)
     return out
 
 
@@ -184,10 +201,11 @@ def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:
 
 # ---------------------------------------------------------------------------- active
 def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16,
-               seed: int = 0, steps_per_beat: int = 1000, progress: bool | None = None) -> tuple[LOParams, np.ndarray]:
+               seed: int = 0, steps_per_beat: int = 1000, progress: bool | None = None,
+               arrangement: multielement.Arrangement | None = None) -> tuple[LOParams, np.ndarray]:
     """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay}) by OrthoMADS with kriging search, from
     ``start`` (clipped into :data:`ACTIVE_BOUNDS`); returns the best LO parameters and C per
-    training beat.
+    training beat. ``arrangement``: train a multi-element LO heart (:func:`lo_beats`).
 
     C² can have several local minima (seen against the series multi-element model). When a MADS
     run converges (poll size below its minimum) before the budget is spent, MADS restarts from a
@@ -202,7 +220,7 @@ def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_
         return [dataclasses.replace(start, **dict(zip(names, map(float, row)))) for row in x]
 
     def objective(x: np.ndarray) -> np.ndarray:
-        c2 = overall(run_congruency(data, candidates(x), steps_per_beat)) ** 2
+        c2 = overall(run_congruency(data, candidates(x), steps_per_beat, arrangement)) ** 2
         return np.log10(c2 + 1e-14)  # the kriging search models log C² far better than C²
 
     rng = np.random.default_rng(seed)
@@ -214,11 +232,12 @@ def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_
             best_x, best_f = res.x_best, res.merit_best
         left -= res.evaluations
         x0 = lower + rng.random(len(names)) * (upper - lower)
-    lo = _polish(data, candidates(best_x[None])[0], names, lower, upper, steps_per_beat)
-    return lo, run_congruency(data, [lo], steps_per_beat)[0]
+    lo = _polish(data, candidates(best_x[None])[0], names, lower, upper, steps_per_beat, arrangement)
+    return lo, run_congruency(data, [lo], steps_per_beat, arrangement)[0]
 
 
-def _polish(data: OracleData, lo: LOParams, names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray, steps_per_beat: int) -> LOParams:
+def _polish(data: OracleData, lo: LOParams, names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray, steps_per_beat: int,
+            arrangement: multielement.Arrangement | None) -> LOParams:
     """Refine MADS's best point by bounded least squares on the residuals of C² (trust-region
     reflective, `scipy.optimize.least_squares`); kept only if C² falls."""
 
@@ -226,11 +245,10 @@ def _polish(data: OracleData, lo: LOParams, names: tuple[str, ...], lower: np.nd
         return dataclasses.replace(lo, **dict(zip(names, map(float, x))))
 
     def fun(x) -> np.ndarray:
-        hearts = training_hearts(data.geometry, data.cell, [with_values(x)])
-        sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
-        if not all(is_usable(s) for s in sim.status):
+        usable, t, v, p = lo_beats(data, [with_values(x)], steps_per_beat, arrangement)
+        if not np.all(usable):
             return np.full(sum(2 * len(data.beats[k].traces["t"]) for k in CONDITIONS), 1e3)
-        parts = [residuals(data.beats[k].traces, sim.traces.t[j], sim.traces.V[j], sim.traces.P_lv[j])[0] for j, k in enumerate(CONDITIONS)]
+        parts = [residuals(data.beats[k].traces, t[j], v[j], p[j])[0] for j, k in enumerate(CONDITIONS)]
         return np.concatenate(parts) / np.sqrt(len(CONDITIONS))
 
     x0 = np.clip([getattr(lo, n) for n in names], lower, upper)

@@ -22,9 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from lvenv.multielement import Arrangement
 from lvenv.params import LOParams
-from lvenv.simulation import simulate
-from lvenv.status import is_usable
 from optim import congruency
 
 __all__ = ["WINDOWS", "MAX_SHIFT_S", "SHIFT_STEP_S", "valve_events", "window_masks", "decompose", "diagnose", "summary"]
@@ -97,15 +96,13 @@ def decompose(oracle: Mapping[str, np.ndarray], t: np.ndarray, v: np.ndarray, p:
             "shift_s": float(shifts[best]), "C_shifted": float(np.sqrt(shifted[best])), "timing_share": float(1.0 - shifted[best] / total)}
 
 
-def diagnose(data: congruency.OracleData, lo: LOParams, steps_per_beat: int = 1000) -> dict[str, Any]:
-    """:func:`decompose` for each training beat of ``data`` with the LO heart ``lo``, and the
-    share of the overall C² per window."""
-    hearts = congruency.training_hearts(data.geometry, data.cell, [lo])
-    sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
-    if not all(is_usable(s) for s in sim.status):
-        raise RuntimeError(f"the LO heart has no usable training beat (status {list(sim.status)})")
-    beats = {str(k): decompose(data.beats[k].traces, sim.traces.t[j], sim.traces.V[j], sim.traces.P_lv[j])
-             for j, k in enumerate(congruency.CONDITIONS)}
+def diagnose(data: congruency.OracleData, lo: LOParams, steps_per_beat: int = 1000, arrangement: Arrangement | None = None) -> dict[str, Any]:
+    """:func:`decompose` for each training beat of ``data`` with the LO heart ``lo`` (a
+    multi-element one with ``arrangement``), and the share of the overall C² per window."""
+    usable, t, v, p = congruency.lo_beats(data, [lo], steps_per_beat, arrangement)
+    if not np.all(usable):
+        raise RuntimeError(f"the LO heart has no usable beat under every training condition (usable: {usable.tolist()})")
+    beats = {str(k): decompose(data.beats[k].traces, t[j], v[j], p[j]) for j, k in enumerate(congruency.CONDITIONS)}
     c2 = np.array([b["C"] ** 2 for b in beats.values()])
     overall = {w: float(np.sum([b["share"][w] * b["C"] ** 2 for b in beats.values()]) / np.sum(c2)) for w in WINDOWS}
     return {"beats": beats, "C": float(np.sqrt(np.mean(c2))), "share": overall}

@@ -13,7 +13,11 @@ section            read from                                              writte
 training           ``lvenv/data/trained_*.json``                          ``python scripts/train_presets.py``
 generalisation     ``out/generalisation/generalisation.{md,png}``         ``python scripts/generalisation.py``
 multi-element      ``out/multielement/multielement.md``                   ``python scripts/multielement_study.py``
-fidelity           ``out/diagnosis/diagnosis.md``                         ``python scripts/congruency_diagnosis.py``
+fidelity           ``out/diagnosis/diagnosis.md``;                        ``python scripts/congruency_diagnosis.py``;
+                   ``out/diagnosis/wall.{md,png}``;                       ``python scripts/wall_diagnosis.py``;
+                   ``out/diagnosis/candidates_dataset.md``,               ``python scripts/candidate_study.py dataset``,
+                   ``candidates_hearts.{md,png}``,                        ``python scripts/candidate_study.py hearts``,
+                   ``candidates_hearts_dt2.5ms.md``                       ``… hearts --dt 0.0025 --no-unseen``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
                    ``out/identify/posterior_patients.json`` and           ``python scripts/posterior_patients.py``;
                    ``posterior_pairs.png``;
@@ -87,6 +91,26 @@ def _markdown_file(path: Path, command: str, report_dir: Path, images: tuple[Pat
         return _missing(command)
     lines = [f"Command: `{command}`; results of {_stamp(path)} (`{path}`).", "", path.read_text().strip(), ""]
     return lines + [line for image in images if image.exists() for line in (_image(image, report_dir), "")]
+
+
+#: The fidelity section's parts: heading, results file, the command that writes it, its figure.
+FIDELITY_PARTS = (
+    ("By phase of the beat, over the campaign's anatomies", "diagnosis.md", "python scripts/congruency_diagnosis.py", None),
+    ("The wall's tension against the one LO cell", "wall.md", "python scripts/wall_diagnosis.py", "wall.png"),
+    ("Candidate low-order hearts on the campaign's anatomies", "candidates_dataset.md", "python scripts/candidate_study.py dataset", None),
+    ("Candidate low-order hearts on N and HF, training and unseen scenarios", "candidates_hearts.md", "python scripts/candidate_study.py hearts",
+     "candidates_hearts.png"),
+    ("The same, trained on the oracle at dt = 2.5 ms", "candidates_hearts_dt2.5ms.md",
+     "python scripts/candidate_study.py hearts --dt 0.0025 --no-unseen", None),
+)
+
+
+def _fidelity(folder: Path, report_dir: Path, level: int) -> list[str]:
+    lines = []
+    for title, name, command, image in FIDELITY_PARTS:
+        images = () if image is None else (folder / image,)
+        lines += ["#" * level + f" {title}", "", *_markdown_file(folder / name, command, report_dir, images)]
+    return lines
 
 
 def _inverse(root: Path, report_dir: Path, level: int) -> list[str]:
@@ -226,7 +250,7 @@ def _sections(root: Path, report_dir: Path, level: int) -> dict[str, list[str]]:
         "generalisation": _markdown_file(root / "generalisation" / "generalisation.md", "python scripts/generalisation.py", report_dir,
                                          (root / "generalisation" / "generalisation.png",)),
         "multi-element": _markdown_file(root / "multielement" / "multielement.md", "python scripts/multielement_study.py", report_dir),
-        "fidelity": _markdown_file(root / "diagnosis" / "diagnosis.md", "python scripts/congruency_diagnosis.py", report_dir),
+        "fidelity": _fidelity(root / "diagnosis", report_dir, level),
         "inverse problem": _inverse(root, report_dir, level),
         "calibration": _calibration(root, level),
         "benchmarks": _benchmarks(root, level),

@@ -4,7 +4,9 @@
   when one cell or circulation parameter at a time leaves its training value: Vmax factor
   (0.25–4), n0 (0.5–0.9), nA (1–10), τ2 (×1.1–2.0) and R1 (up to 0.1 kPa·s/ml), one beat under
   training condition ②. Reported per scenario: C (DESIGN §3, one run) and the largest pointwise
-  error of P and V, each relative to the oracle trace's maximum.
+  error of P and V, each relative to the oracle trace's maximum. With an ``arrangement`` the LO
+  side is that multi-element heart (:mod:`lvenv.multielement`), for comparing candidate
+  low-order hearts on the same oracle runs.
 * :func:`multielement_table` (their Table 4): a single-element LO heart trained
   (:func:`optim.congruency.train`) to each 256-element model (parallel and series,
   :mod:`lvenv.multielement`) along four sweeps of ten values: Vmax factor 0.25–4, n0 0.5–0.9,
@@ -20,7 +22,7 @@ from typing import Any
 import numpy as np
 
 import fe_oracle
-from lvenv import presets
+from lvenv import multielement, presets
 from lvenv.params import CellParams, Heart
 from lvenv.simulation import simulate
 from optim.congruency import congruency, train
@@ -52,26 +54,34 @@ def scenario(heart: Heart, change: Mapping[str, float]) -> Heart:
     return presets.training_condition(2, heart).replace(**change)
 
 
-def _errors(oracle: fe_oracle.OracleResult, lo) -> dict[str, float]:
+def _errors(oracle: fe_oracle.OracleResult, t: np.ndarray, v: np.ndarray, p: np.ndarray) -> dict[str, float]:
+    """C and the largest pointwise errors of one LO beat (``t`` s, ``v`` ml, ``p`` kPa) against ``oracle``."""
     tr = oracle.traces
-    c = float(np.sqrt(congruency(tr, lo.traces.t, lo.traces.V, lo.traces.P_lv)[0]))
-    v = np.interp(tr["t"], lo.traces.t, lo.traces.V)
-    p = np.interp(tr["t"], lo.traces.t, lo.traces.P_lv)
+    c = float(np.sqrt(congruency(tr, t, v[None], p[None])[0]))
+    v = np.interp(tr["t"], t, v)
+    p = np.interp(tr["t"], t, p)
     return {"C": c, "max_rel_error_V": float(np.max(np.abs(v - tr["V"])) / np.max(np.abs(tr["V"]))),
             "max_rel_error_P": float(np.max(np.abs(p - tr["P_lv"])) / np.max(np.abs(tr["P_lv"])))}
 
 
 def generalisation(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
-                   steps_per_beat: int = 1000, progress: bool | None = None, **oracle_options: Any) -> list[dict[str, Any]]:
+                   steps_per_beat: int = 1000, progress: bool | None = None, arrangement: multielement.Arrangement | None = None,
+                   **oracle_options: Any) -> list[dict[str, Any]]:
     """One row per scenario: its name, the change, C, the pointwise errors, the oracle's cache key,
-    and the traces of both (for figures). The LO beats run as one batch."""
+    and the traces of both (for figures: ``lo`` with ``t``, ``V``, ``P_lv``). The LO beats run as
+    one batch, of the single-cell heart or, with ``arrangement``, of that multi-element heart."""
     hearts = {name: scenario(heart, change) for name, change in scenarios.items()}
-    lo = simulate(list(hearts.values()), beats=1, steps_per_beat=steps_per_beat)
+    if arrangement is None:
+        sim = simulate(list(hearts.values()), beats=1, steps_per_beat=steps_per_beat)
+        status, traces = sim.status, [{k: getattr(sim.traces, k)[i] for k in ("t", "V", "P_lv")} for i in range(len(hearts))]
+    else:
+        sim = multielement.simulate(list(hearts.values()), arrangement, beats=1, steps_per_beat=steps_per_beat)
+        status, traces = sim.status, [{k: sim.traces[k][i] for k in ("t", "V", "P_lv")} for i in range(len(hearts))]
     rows = []
     for i, (name, h) in enumerate(hearts.items()):
         oracle = fe_oracle.run(h.geometry, h.circulation, backend, cell=h.cell, progress=progress, **oracle_options)
-        rows.append({"scenario": name, "change": dict(scenarios[name]), **_errors(oracle, lo[i]), "lo_status": str(lo.status[i]),
-                     "oracle_key": oracle.metadata["key"], "oracle": oracle.traces, "lo": lo[i].traces})
+        rows.append({"scenario": name, "change": dict(scenarios[name]), **_errors(oracle, traces[i]["t"], traces[i]["V"], traces[i]["P_lv"]),
+                     "lo_status": str(status[i]), "oracle_key": oracle.metadata["key"], "oracle": oracle.traces, "lo": traces[i]})
     return rows
 
 

@@ -155,3 +155,30 @@ def test_closed_loop_steps_conserve_blood_volume(cache_dir):
     total = tr["V"] + circ.C * tr["P_c"] + circ.Cat * tr["P_at"]
     assert np.ptp(total) < 1e-9 * total[0]
     assert np.ptp(tr["P_at"]) > 0  # the atrium is a state, not a constant
+
+
+def test_the_wall_record_is_the_distribution_the_beat_computes_with():
+    """``wall_quantiles``: one record per trace sample; at the start every point rests (rate 0,
+    Ta from the diastolic calcium), the quantiles are ordered, the run's traces are those of a run without the record, and the activation-time
+    quantiles are those of `activation_quantiles` on the same mesh and stay below the latest time."""
+    from fe_oracle.activation import activation_quantiles
+    from fe_oracle.coupled_beat import WALL_FIELDS
+    from fe_oracle.dolfinx_backend import run_beat
+    from fe_oracle.material import Guccione
+    from lvenv import presets
+    from lvenv.params import CellParams
+
+    q = (0.05, 0.5, 0.95)
+    args = (N_UNLOADED, presets.training_circulation(2), CellParams(), Guccione(), TINY_H, 0.01, 1)
+    traces, meta, _ = run_beat(*args, duration=0.05, wall_quantiles=q)
+    plain, _, _ = run_beat(*args, duration=0.05)
+    wall = traces["wall"]
+    assert wall.shape == (len(traces["t"]), len(WALL_FIELDS), len(q) + 1)
+    np.testing.assert_array_equal(traces["P_lv"], plain["P_lv"])
+    assert np.all(np.diff(wall[..., :-1], axis=-1) >= 0)
+    assert np.all(wall[0, 1] == 0.0)
+    ta = wall[:, WALL_FIELDS.index("Ta"), -1]
+    assert ta[-1] > 10 * ta[0]  # by 50 ms most of the wall is active
+    times = meta["activation_quantiles_s"]
+    np.testing.assert_allclose(times, activation_quantiles(N_UNLOADED, TINY_H, q), rtol=1e-12)
+    assert 0.0 <= times[0] < times[1] < times[2] < meta["activation_time_max_s"]

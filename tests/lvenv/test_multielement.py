@@ -203,3 +203,34 @@ def test_arrangement_is_validated_with_field_value_and_allowed():
     values = me.Arrangement("parallel", 256).element_values()
     assert values[0] == 0.01 and values[-1] == pytest.approx(0.179) and np.all(np.diff(values) > 0)
     assert me.Arrangement("series", 1).element_values() == pytest.approx([0.8])
+
+
+@pytest.mark.parametrize("onset", [0.025, -0.02, -0.05])
+def test_an_elements_onset_moves_its_calcium_like_the_single_hearts_delay(onset):
+    """One element whose onset is δ is the single-element heart with delay max(delay + δ, 0): an
+    onset that ignored its sign, its size or the clip at 0 would miss these traces."""
+    hearts = [h.replace(delay=0.03) for h in _hearts()[1:2]]
+    shifted = [h.replace(delay=max(0.03 + onset, 0.0)) for h in hearts]
+    single = lvenv.simulate(shifted, beats=1)
+    res = me.simulate(hearts, me.Arrangement("series", 1, (1.0, 1.0), onsets=(onset,)))
+    assert list(res.status) == ["ok"]
+    np.testing.assert_allclose(res.traces["V"], single.traces.V, atol=5e-3)
+    np.testing.assert_allclose(res.traces["P_lv"], single.traces.P_lv, atol=2e-3)
+
+
+@pytest.mark.parametrize("kind", me.ARRANGEMENTS)
+def test_zero_onsets_are_bit_identical_to_none(kind):
+    hearts = _hearts()[:2]
+    plain = me.simulate(hearts, me.Arrangement(kind, 3))
+    zero = me.simulate(hearts, me.Arrangement(kind, 3, onsets=(0.0, 0.0, 0.0)))
+    for name in ("V", "P_lv", "P_ao"):
+        np.testing.assert_array_equal(zero.traces[name], plain.traces[name])
+
+
+def test_onsets_are_validated_with_field_value_and_allowed():
+    with pytest.raises(ValueError, match=r"one onset \(s\) per element, 3 in all"):
+        me.Arrangement("series", 3, onsets=(0.0, 0.01))
+    with pytest.raises(ValueError, match=r"onsets\[1\] = 0.5 must be"):
+        me.Arrangement("series", 2, onsets=(0.0, 0.5))
+    assert np.array_equal(me.Arrangement("parallel", 2, onsets=(-0.01, 0.01)).element_onsets(), [-0.01, 0.01])
+    assert np.array_equal(me.Arrangement("parallel", 2).element_onsets(), [0.0, 0.0])

@@ -81,3 +81,25 @@ def test_fidelity_of_the_lo_heart_against_itself_is_within_every_tolerance(tmp_p
     # a heart the oracle does not share (another μ2 in the oracle) is caught
     other = cg.check_fidelity(heart, "multielement", beats=3, **lo_data(tmp_path, dataclasses.replace(TRUTH, mu2=0.15)))
     assert not other.ok and other.C > 2 * report.C, (other.C, report.C)
+
+
+def test_a_multi_element_candidate_is_trained_against_beats_it_generated():
+    """fit_active with an arrangement trains that arrangement: against beats of 3 cells in series
+    with spread onsets (known maps), it recovers μ2 and the delay from a 10 % start with C ≈ 0,
+    and its C is the one run_congruency reports for the arrangement, not for the single cell."""
+    import fe_oracle
+    from lvenv import multielement as me
+
+    truth = dataclasses.replace(presets.N_LO, delay=0.03)
+    arr = me.Arrangement("series", 3, (1.0, 1.0), onsets=(-0.02, 0.0, 0.03))
+    hearts = cg.training_hearts(presets.N_UNLOADED, presets.normal().cell, [truth])
+    sim = me.simulate(hearts, arr, steps_per_beat=500)
+    beats = {k: fe_oracle.OracleResult({name: sim.traces[name][j] for name in ("t", "V", "P_lv", "P_ao", "P_c", "P_at")}, {}, [])
+             for j, k in enumerate(cg.CONDITIONS)}
+    data = cg.OracleData(presets.N_UNLOADED, presets.normal().cell, None, beats, "multielement", {})
+    start = dataclasses.replace(truth, mu2=1.1 * truth.mu2, delay=0.9 * truth.delay)
+    lo, c = cg.fit_active(data, start, ("mu2", "delay"), budget=64, steps_per_beat=500, arrangement=arr)
+    assert lo.mu2 == pytest.approx(truth.mu2, rel=1e-3) and lo.delay == pytest.approx(truth.delay, rel=1e-3)
+    assert np.all(c < 1e-3)
+    single = cg.overall(cg.run_congruency(data, [lo], 500))
+    assert single > 10 * cg.overall(c)

@@ -47,7 +47,7 @@ def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_
     assert "| normal | " in text["training"] and re.search(r"\| \d{4}-\d\d-\d\d \|", text["training"]), "the record's training date"
     assert "Not run yet. Command: `python scripts/generalisation.py`" in text["generalisation"]
     assert "Not run yet. Command: `python scripts/multielement_study.py`" in text["multi-element"]
-    assert "Not run yet. Command: `python scripts/congruency_diagnosis.py`" in text["fidelity"]
+    assert all(f"## {title}\n\nNot run yet. Command: `{command}`" in text["fidelity"] for title, _, command, _ in report.FIDELITY_PARTS)
     inverse = text["inverse-problem"]
     assert "## Built-in patients" in inverse and "results of 1971-01-01 00:00 UTC" in inverse and "normal   mads    0.42 %" in inverse
     assert "Not run yet. Command: `lvenv cohort REPORTS.csv --out out/cohort/fits.csv`" in inverse

@@ -1,0 +1,66 @@
+"""Cost of the candidate low-order hearts against the single cell, in the same run (issue 30's cost criterion; JSON out).
+
+    python scripts/bench_candidates.py [--batches 256 1024] [--repeats 3]
+
+Per batch size, beats per second (median of ``--repeats`` timed runs after one compile run, 2 beats
+from the training-protocol state, 1000 ROS2 steps per beat, no traces) of the single-cell heart
+(`lvenv.simulate`) and of the multi-element candidates of `scripts/candidate_study.py`
+(`lvenv.multielement.simulate`: 5 cells in series or in parallel with the N wall's onsets), and
+``ratio_vs_single``: the single cell's beats/s over the candidate's (how many times it costs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+import lvenv  # noqa: E402
+from lvenv import multielement  # noqa: E402
+from scripts.bench_lo import cohort  # noqa: E402
+
+BEATS, STEPS = 2, 1000
+#: The N wall's activation times at the candidates' quantiles less their median (s), at h = 6 mm
+#: (`fe_oracle.activation.activation_quantiles`); the cost does not depend on their values.
+ONSETS = (-0.0198, -0.0088, 0.0, 0.0100, 0.0295)
+
+
+def _median_rate(run, n: int, repeats: int) -> float:
+    run()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    return BEATS * n / float(np.median(times))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--batches", nargs="+", type=int, default=[256, 1024])
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    candidates = {"series-onsets": multielement.Arrangement("series", len(ONSETS), (1.0, 1.0), onsets=ONSETS),
+                  "parallel-onsets": multielement.Arrangement("parallel", len(ONSETS), onsets=ONSETS)}
+    out = {"beats": BEATS, "steps_per_beat": STEPS, "repeats": args.repeats, "batches": {}}
+    for n in args.batches:
+        batch = cohort(n)
+        single = _median_rate(lambda: lvenv.simulate(batch, beats=BEATS, traces=False, steps_per_beat=STEPS), n, args.repeats)
+        row = {"single_beats_per_s": single}
+        for name, arr in candidates.items():
+            rate = _median_rate(lambda: multielement.simulate(batch, arr, beats=BEATS, traces=False, steps_per_beat=STEPS), n, args.repeats)
+            row[name] = {"beats_per_s": rate, "ratio_vs_single": single / rate}
+        out["batches"][str(n)] = row
+        print(f"# batch {n}: single {single:,.0f} beats/s; " + "; ".join(f"{k} x{v['ratio_vs_single']:.1f}" for k, v in row.items() if k != "single_beats_per_s"),
+              file=sys.stderr, flush=True)
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

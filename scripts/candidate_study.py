@@ -1,0 +1,192 @@
+"""Candidate low-order hearts trained against the same FE runs (issue 30, item 2); JSON out.
+
+    python scripts/candidate_study.py dataset [--anatomies H000 H001 ...] [--budget 480] [--out out/diagnosis]
+    python scripts/candidate_study.py hearts [--hearts normal heart_failure] [--dt 0.005] [--no-unseen] [--budget 480] [--out out/diagnosis]
+
+The candidates (`CANDIDATES`):
+
+* **single**: the single-cell heart with its activation delay, as trained;
+* **series-onsets**: 5 cells in series (sharing the pressure, equal volume shares) whose
+  calcium transients start at the 5, 27.5, 50, 72.5 and 95 % quantiles of the wall's activation
+  times, centred on their median (`lvenv.multielement.Arrangement.onsets`): the early cells
+  stretch the late ones, which then pull harder (length dependence) and relax later, as the
+  wall's most loaded points do (`scripts/wall_diagnosis.py`);
+* **parallel-onsets**: the same 5 onsets with the cells in parallel (sharing the volume).
+
+The anatomy sets the onsets (`fe_oracle.activation.activation_quantiles` on its oracle mesh:
+meshing and the eikonal solve, seconds, no mechanics). Training refits only {μ1, μ2, γ, delay}
+from the single cell's trained values (`optim.congruency.fit_active` with the arrangement, MADS
+budget ``--budget``); the passive maps stay.
+
+``dataset``: each anatomy of the campaign's dataset (`optim.campaign.oracle_data`: its FE
+training beats, no FE run; default: the 5 held-out anatomies and the first 5 training ones), C
+on its training beats; writes ``--out``/candidates_dataset.md.
+
+``hearts``: the built-in trained hearts (N, HF), trained on their own FE training beats
+(`optim.congruency.oracle_data`, h = 6 mm, the oracle's time step ``--dt``; FE runs cached) and
+then run, maps frozen, in the unseen scenarios of `optim.studies.UNSEEN`
+(`optim.studies.generalisation` with the arrangement; ``--no-unseen`` skips them): C and the
+largest pointwise pressure error per scenario, beside the issue's goals (training C ≤ 2 %;
+unseen C ≤ 5 % and pressure error ≤ 10 %). Writes ``--out``/candidates_hearts[_dt<ms>].md and
+.png (FE solid, the single cell dashed, each other candidate dotted).
+
+Each candidate costs about a minute per anatomy on one core, and the hearts mode about 12 FE
+beats per heart when the cache is cold.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from fe_oracle.activation import activation_quantiles  # noqa: E402
+from lvenv import presets  # noqa: E402
+from lvenv.multielement import Arrangement  # noqa: E402
+from lvenv.params import LOParams  # noqa: E402
+from lvenv.plots import generalisation_figure  # noqa: E402
+from lvenv.trained import builtin  # noqa: E402
+from optim import campaign, congruency  # noqa: E402
+from optim.studies import UNSEEN, generalisation  # noqa: E402
+
+#: Quantiles of the activation times the 5 cells start at.
+ONSET_QUANTILES = (0.05, 0.275, 0.5, 0.725, 0.95)
+CANDIDATES = ("single", "series-onsets", "parallel-onsets")
+#: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
+GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
+HEARTS = {"normal": presets.normal, "heart_failure": presets.heart_failure}
+TRAINED = (*congruency.ACTIVE_NAMES, "delay")
+
+
+def onsets(data: congruency.OracleData) -> tuple[float, ...]:
+    """The cells' onsets relative to the LO delay (s): the activation times of ``data``'s wall at
+    :data:`ONSET_QUANTILES`, less their median."""
+    q = activation_quantiles(data.geometry, data.beats[2].metadata["mesh_size_mm"], ONSET_QUANTILES)
+    return tuple(float(x) for x in q - np.median(q))
+
+
+def arrangement(name: str, shifts: tuple[float, ...], lo: LOParams) -> Arrangement | None:
+    """The multi-element arrangement of candidate ``name`` with onsets ``shifts`` (None: the single cell)."""
+    if name == "single":
+        return None
+    if name == "series-onsets":
+        return Arrangement("series", len(shifts), spread=(1.0, 1.0), onsets=shifts)
+    return Arrangement("parallel", len(shifts), spread=(lo.mu1, lo.mu1), onsets=shifts)
+
+
+def train(data: congruency.OracleData, trained: LOParams, names, budget: int) -> dict:
+    """Each candidate of ``names`` on ``data``, from the single cell's ``trained`` maps:
+    name → (maps, C per training beat, arrangement, seconds)."""
+    shifts = onsets(data)
+    out = {}
+    for name in names:
+        t0 = time.perf_counter()
+        arr = arrangement(name, shifts, trained)
+        if arr is None:
+            lo, c = trained, congruency.run_congruency(data, [trained])[0]
+        else:
+            lo, c = congruency.fit_active(data, trained, TRAINED, budget=budget, arrangement=arr)
+        out[name] = (lo, c, arr, time.perf_counter() - t0)
+        print(f"{data.geometry} {name}: C {100 * congruency.overall(c):.2f} %", file=sys.stderr, flush=True)
+    return out
+
+
+def _summary(lo: LOParams, c: np.ndarray, seconds: float) -> dict:
+    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, **{k: getattr(lo, k) for k in TRAINED}}
+
+
+def dataset_mode(args, command: str) -> dict:
+    rows = [r for r in campaign.read_index(campaign.DATASET) if r["status"] == "accepted"]
+    if args.anatomies:
+        unknown = sorted(set(args.anatomies) - {r["id"] for r in rows})
+        if unknown:
+            sys.exit(f"--anatomies {unknown}: not accepted anatomies of {campaign.DATASET}")
+        rows = [r for r in rows if r["id"] in args.anatomies]
+    else:
+        rows = [r for r in rows if r["split"] == "heldout"] + [r for r in rows if r["split"] == "train"][:5]
+    results = []
+    for row in rows:
+        data = campaign.oracle_data(campaign.DATASET, row["id"])
+        trained = LOParams(**{f.name: row[f.name] for f in dataclasses.fields(LOParams)})
+        fits = train(data, trained, args.candidates, args.budget)
+        results.append({"id": row["id"], "onsets_ms": [1000 * x for x in onsets(data)],
+                        **{name: _summary(lo, c, s) for name, (lo, c, _, s) in fits.items()}})
+    medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
+    lines = [f"Made by `{command}`: each candidate trained on each anatomy's own FE training beats (campaign dataset, "
+             "h = 6 mm, dt = 5 ms; no FE run). C on the training beats, in %.", "",
+             "Median over the anatomies: " + ", ".join(f"{n} {100 * m:.2f} %" for n, m in medians.items()) + ".", "",
+             "| anatomy | onsets (ms) | " + " | ".join(args.candidates) + " |", "|---|---|" + "---|" * len(args.candidates)]
+    lines += [f"| {r['id']} | {', '.join(f'{x:+.0f}' for x in r['onsets_ms'])} | " + " | ".join(f"{100 * r[n]['C']:.2f}" for n in args.candidates) + " |"
+              for r in results]
+    (args.out / "candidates_dataset.md").write_text("\n".join(lines) + "\n")
+    return {"median_C": medians, "anatomies": results}
+
+
+def hearts_mode(args, command: str) -> dict:
+    results, figure_rows = [], []
+    oracle = {} if args.dt is None else {"dt": args.dt}
+    scenarios = {} if args.no_unseen else UNSEEN
+    suffix = "" if args.dt is None else f"_dt{1000 * args.dt:g}ms"
+    for heart_name in args.hearts:
+        heart = HEARTS[heart_name]()
+        data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
+        fits = train(data, builtin(heart_name).lo, args.candidates, args.budget)
+        entry = {"heart": heart_name, "candidates": {}}
+        traces = {}
+        for name, (lo, c, arr, seconds) in fits.items():
+            rows = generalisation(dataclasses.replace(heart, lo=lo), scenarios, arrangement=arr, progress=False, **oracle)
+            entry["candidates"][name] = {"training": _summary(lo, c, seconds),
+                                         "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
+            traces[name] = rows
+        results.append(entry)
+        for i, r in enumerate(traces[args.candidates[0]]):
+            figure_rows.append({**r, "heart": heart_name, "candidates": {n: traces[n][i]["lo"] for n in args.candidates[1:]}})
+    dt = f"{1000 * args.dt:g} ms" if args.dt else "5 ms"
+    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = {dt}), "
+             "then run with its maps frozen in the unseen scenarios (one beat under condition ②, one parameter changed). "
+             f"Goals: training C ≤ {100 * GOALS['training_C']:g} %, unseen C ≤ {100 * GOALS['unseen_C']:g} % and largest pressure "
+             f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %. C and the largest pressure error (both %), the "
+             "unseen scenarios as C / pressure error.", "",
+             "| heart | candidate | training C (① ② ③) | " + " | ".join(scenarios) + " | worst unseen C | worst pressure error |",
+             "|---|---|---|" + "---|" * len(scenarios) + "---|---|"]
+    for entry in results:
+        for name, cand in entry["candidates"].items():
+            unseen = cand["unseen"]
+            beats = " ".join(f"{100 * x:.1f}" for x in cand["training"]["C_beats"])
+            worst = (f"{100 * max(u['C'] for u in unseen.values()):.1f} | {100 * max(u['max_rel_error_P'] for u in unseen.values()):.0f}"
+                     if unseen else "– | –")
+            lines.append(f"| {entry['heart']} | {name} | {100 * cand['training']['C']:.2f} ({beats}) | "
+                         + " | ".join(f"{100 * unseen[s]['C']:.1f} / {100 * unseen[s]['max_rel_error_P']:.0f}" for s in scenarios) + f" | {worst} |")
+    name = f"candidates_hearts{suffix}"
+    (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")
+    if figure_rows:
+        generalisation_figure(figure_rows, args.out / f"{name}.png", columns=len(scenarios))
+    return {"hearts": results}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("mode", choices=("dataset", "hearts"))
+    parser.add_argument("--anatomies", nargs="+", help="dataset mode: dataset ids (default: the held-out anatomies and the first 5 training ones)")
+    parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS), help="hearts mode: the built-in hearts")
+    parser.add_argument("--candidates", nargs="+", choices=CANDIDATES, default=list(CANDIDATES))
+    parser.add_argument("--dt", type=float, help="hearts mode: the oracle's time step (s; default the oracle's own, 5 ms)")
+    parser.add_argument("--no-unseen", action="store_true", help="hearts mode: the training beats only")
+    parser.add_argument("--budget", type=int, default=480, help="MADS evaluations per active fit")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/diagnosis"))
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    command = "python scripts/candidate_study.py " + " ".join(sys.argv[1:])
+    result = dataset_mode(args, command) if args.mode == "dataset" else hearts_mode(args, command)
+    print(json.dumps({"mode": args.mode, "budget": args.budget, "onset_quantiles": ONSET_QUANTILES, **result}, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()

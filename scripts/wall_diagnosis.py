@@ -1,0 +1,205 @@
+"""The FE wall's distribution of stretch, stretch rate and active tension against the single LO cell (issue 30, diagnosis); JSON out.
+
+    python scripts/wall_diagnosis.py [--hearts normal heart_failure] [--conditions 1 2 3] [--mesh-size 6] [--dt 0.005] [--out out/diagnosis]
+
+For each built-in trained heart and training condition, one FE beat of the oracle (as
+`optim.congruency.oracle_data` runs it) that also records, at every accepted step, the 5, 25,
+50, 75 and 95 % quantiles and the mean over the wall's quadrature points of the fibre stretch
+λ, its rate dλ/dt and the active tension Ta (`fe_oracle.dolfinx_backend.run_beat`'s
+``wall_quantiles``), beside the trained LO heart's beat under the same condition. The LO heart's
+pressure law P = μ2 Ta + Ppass(V) (`lvenv.coupling`) read backwards turns each beat into the
+tension it implies: the LO cell's own Ta, and the FE beat's Ta_FE = (P_FE − Ppass(V_FE)) / μ2
+with the same maps. Two questions separate the candidate mechanisms:
+
+* **Kinetics:** does the wall's tension (mean over the points) rise and fall like the one
+  LO cell's? Reported: the time of the peak, the times of 50 % rise and of 50 % and 10 % fall
+  from the peak (ms after the beat's onset), and the fall from 50 % to 10 % (ms).
+* **Pressure law:** is the FE pressure the LO law of the wall's mean tension, i.e. is
+  g(t) = Ta_FE / mean Ta (the gain the LO cell's μ2 has to stand for) constant over the beat?
+  Reported: its median per window of the FE beat (`optim.diagnosis.window_masks`), over the
+  samples where the wall's mean Ta is at least 10 % of its peak.
+* **Which points carry the pressure:** the least-squares gain G and the relative residual
+  ‖Ta_FE − G q(t)‖ / ‖Ta_FE‖ of Ta_FE against each recorded quantile q(t) of the wall's
+  tension and against its mean: the trace that fits best is the part of the wall whose
+  tension the cavity pressure follows.
+
+Also per window the wall's interquartile range of λ and dλ/dt against the LO λ's range. Each
+FE beat is written to ``--out``/wall/<heart>_<condition>_h<h>_dt<dt>ms.npz (`lvenv.archive`); a
+rerun reads it instead of solving again. One FE beat takes about a minute on one core at h = 6 mm.
+Writes ``--out``/wall.md (tables) and wall.png (the wall's tension quantiles, the FE-implied
+tension and the LO cell's, each over its peak, under condition ②).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from lvenv import archive, coupling, presets  # noqa: E402
+from lvenv.geometry import cavity_volume  # noqa: E402
+from lvenv.params import CellParams, Heart  # noqa: E402
+from lvenv.simulation import simulate  # noqa: E402
+from lvenv.trained import builtin  # noqa: E402
+from optim import congruency, diagnosis  # noqa: E402
+
+#: The quantiles over the quadrature points that the FE beat records.
+QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
+#: The geometry of each built-in trained heart.
+GEOMETRY = {"normal": presets.N_UNLOADED, "heart_failure": presets.HF_UNLOADED}
+#: Samples whose wall mean Ta is below this fraction of its peak carry no gain.
+GAIN_FLOOR = 0.1
+
+
+def fe_beat(geometry, condition: int, mesh_size: float, dt: float, path: pathlib.Path) -> tuple[dict[str, np.ndarray], dict]:
+    """The FE beat with its wall record, from ``path`` or solved (and saved there)."""
+    if path.exists():
+        return archive.load(path, "wall-diagnosis beat")
+    import fe_oracle  # noqa: F401  (dolfinx_solver first)
+    from fe_oracle.dolfinx_backend import run_beat
+    from fe_oracle.material import Guccione
+
+    traces, meta, _ = run_beat(geometry, presets.training_circulation(condition), CellParams(), Guccione(), mesh_size, dt, 1, wall_quantiles=QUANTILES)
+    archive.save(path, traces, {k: v for k, v in meta.items() if isinstance(v, (int, float, str, list))})
+    return traces, meta
+
+
+def _crossing(t: np.ndarray, y: np.ndarray, level: float, after: int, rising: bool) -> float:
+    """First time after index ``after`` where ``y`` crosses ``level`` (linear interpolation), ms."""
+    s = y[after:] - level
+    idx = np.flatnonzero((s[:-1] < 0) & (s[1:] >= 0) if rising else (s[:-1] > 0) & (s[1:] <= 0))
+    if not len(idx):
+        return float("nan")
+    i = after + idx[0]
+    return float(1000 * (t[i] + (level - y[i]) / (y[i + 1] - y[i]) * (t[i + 1] - t[i])))
+
+
+def timing(t: np.ndarray, ta: np.ndarray) -> dict[str, float]:
+    """Peak, 50 % rise, 50 % and 10 % fall times (ms) of a tension trace, and the 50 → 10 % fall (ms)."""
+    k = int(np.argmax(ta))
+    peak = float(ta[k])
+    out = {"peak_ms": float(1000 * t[k]), "rise50_ms": _crossing(t[: k + 1], ta[: k + 1], 0.5 * peak, 0, True),
+           "fall50_ms": _crossing(t, ta, 0.5 * peak, k, False), "fall10_ms": _crossing(t, ta, 0.1 * peak, k, False)}
+    out["fall50_to_10_ms"] = out["fall10_ms"] - out["fall50_ms"]
+    return out
+
+
+def compare(name: str, condition: int, traces: dict[str, np.ndarray], meta: dict) -> dict:
+    """The comparison of the module docstring for one FE beat and the trained LO heart ``name``."""
+    trained = builtin(name)
+    lo, geometry = trained.lo, GEOMETRY[name]
+    v0 = float(cavity_volume(geometry))
+    heart = Heart(geometry=geometry, lo=lo, cell=CellParams(), circulation=presets.training_circulation(condition))
+    sim = simulate(heart, beats=1, steps_per_beat=1000)
+    t_lo, v_lo, p_lo = (np.asarray(getattr(sim.traces, k), float) for k in ("t", "V", "P_lv"))
+    t = np.asarray(traces["t"], float)
+    wall = np.asarray(traces["wall"], float)  # (samples, field, quantiles + mean)
+    lam_q, rate_q, ta_q = wall[:, 0], wall[:, 1], wall[:, 2]
+    ta_mean = ta_q[:, -1]
+    ta_lo = (p_lo - np.asarray(coupling.passive_pressure(v_lo, v0, lo))) / lo.mu2
+    ta_fe = (traces["P_lv"] - np.asarray(coupling.passive_pressure(traces["V"], v0, lo))) / lo.mu2
+    lam_lo = np.interp(t, t_lo, np.asarray(coupling.stretch(v_lo, v0, lo)))
+    masks = diagnosis.window_masks(t, diagnosis.valve_events(traces))
+    strong = ta_mean >= GAIN_FLOOR * ta_mean.max()
+    gain = np.where(strong, ta_fe / np.where(strong, ta_mean, 1.0), np.nan)
+    windows = {}
+    for w, m in masks.items():
+        g = gain[m & strong]
+        windows[w] = {"gain_median": float(np.median(g)) if len(g) else None,
+                      "lam_iqr": float(np.median(lam_q[m, 3] - lam_q[m, 1])) if m.any() else None,
+                      "rate_iqr_per_s": float(np.median(rate_q[m, 3] - rate_q[m, 1])) if m.any() else None,
+                      "lam_lo_range": [float(lam_lo[m].min()), float(lam_lo[m].max())] if m.any() else None}
+    c = float(np.sqrt(congruency.congruency(traces, t_lo, v_lo[None], p_lo[None])[0]))
+    fits = {}
+    for j, label in enumerate([f"q{round(100 * q):02d}" for q in QUANTILES] + ["mean"]):
+        q = ta_q[:, j]
+        gain = float(np.dot(q, ta_fe) / np.dot(q, q))
+        fits[label] = {"gain": gain, "rel_residual": float(np.linalg.norm(ta_fe - gain * q) / np.linalg.norm(ta_fe))}
+    return {"heart": name, "condition": condition, "C": c, "mu2": lo.mu2, "delay_ms": 1000 * lo.delay,
+            "activation_quantiles_ms": [1000 * x for x in meta.get("activation_quantiles_s", [])],
+            "timing": {"wall_mean": timing(t, ta_mean), "wall_median": timing(t, ta_q[:, 2]), "fe_implied": timing(t, ta_fe),
+                       "lo_cell": timing(t_lo, ta_lo)},
+            "peak_kPa": {"wall_mean": float(ta_mean.max()), "wall_p95": float(ta_q[:, 4].max()), "fe_implied": float(ta_fe.max()), "lo_cell": float(ta_lo.max())},
+            "windows": windows, "pressure_fit": fits, "fe_wall_s": meta.get("wall_s"),
+            "curves": {"t": t, "wall": ta_q, "fe_implied": ta_fe, "t_lo": t_lo, "lo_cell": ta_lo}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--hearts", nargs="+", choices=sorted(GEOMETRY), default=sorted(GEOMETRY))
+    parser.add_argument("--conditions", nargs="+", type=int, choices=congruency.CONDITIONS, default=list(congruency.CONDITIONS))
+    parser.add_argument("--mesh-size", type=float, default=6.0, help="oracle mesh size h (mm)")
+    parser.add_argument("--dt", type=float, default=0.005, help="oracle time step (s)")
+    parser.add_argument("--out", default="out/wall", help="folder of the FE beats (resumed from)")
+    args = parser.parse_args()
+    out = pathlib.Path(args.out)
+    (out / "wall").mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in args.hearts:
+        for k in args.conditions:
+            t0 = time.perf_counter()
+            traces, meta = fe_beat(GEOMETRY[name], k, args.mesh_size, args.dt, out / "wall" / f"{name}_{k}_h{args.mesh_size:g}_dt{1000 * args.dt:g}ms.npz")
+            rows.append(compare(name, k, traces, meta) | {"seconds": time.perf_counter() - t0})
+            print(f"{name} condition {k}: C {100 * rows[-1]['C']:.2f} %", file=sys.stderr, flush=True)
+    command = "python scripts/wall_diagnosis.py " + " ".join(sys.argv[1:])
+    (out / "wall.md").write_text(markdown(rows, command))
+    figure([r for r in rows if r["condition"] == 2] or rows, out / "wall.png")
+    print(json.dumps({"settings": vars(args), "quantiles": QUANTILES, "rows": [{k: v for k, v in r.items() if k != "curves"} for r in rows]}, indent=1))
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    """The tables of wall.md: tension timing per trace, and the fit of the FE pressure to each quantile."""
+    traces = ("wall_median", "wall_mean", "fe_implied", "lo_cell")
+    lines = [f"Made by `{command}` (its FE beats are kept in `wall/` beside this page). Times in ms after the beat's onset.", "",
+             "| heart | condition | C (%) | trace | peak | 50 % rise | 50 % fall | 10 % fall |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        for name in traces:
+            tm = r["timing"][name]
+            lines.append(f"| {r['heart']} | {r['condition']} | {100 * r['C']:.2f} | {name} | {tm['peak_ms']:.0f} | {tm['rise50_ms']:.0f} | "
+                         f"{tm['fall50_ms']:.0f} | {tm['fall10_ms']:.0f} |")
+    labels = list(rows[0]["pressure_fit"])
+    lines += ["", "The FE cavity pressure read as tension through the LO law, Ta_FE = (P_FE − Ppass(V_FE)) / μ2, fitted by one gain "
+              "to each quantile of the wall's tension over the quadrature points and to its mean: relative residual (the smallest "
+              "marks the part of the wall the pressure follows).", "",
+              "| heart | condition | " + " | ".join(labels) + " |", "|---|---|" + "---|" * len(labels)]
+    lines += [f"| {r['heart']} | {r['condition']} | " + " | ".join(f"{r['pressure_fit'][k]['rel_residual']:.3f}" for k in labels) + " |" for r in rows]
+    windows = list(rows[0]["windows"])
+    lines += ["", "Gain Ta_FE / (wall mean Ta) per window of the FE beat (median; a constant gain would make the LO law exact "
+              "for the wall's mean tension):", "", "| heart | condition | " + " | ".join(windows) + " |", "|---|---|" + "---|" * len(windows)]
+    lines += [f"| {r['heart']} | {r['condition']} | " + " | ".join("–" if r["windows"][w]["gain_median"] is None else f"{r['windows'][w]['gain_median']:.2f}"
+                                                                 for w in windows) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def figure(rows: list[dict], path: pathlib.Path) -> None:
+    """Per row: the wall's Ta quantile bands, its median, the FE-implied and the LO cell's Ta, each over its peak."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(rows), figsize=(4.2 * len(rows), 3.2), squeeze=False)
+    for ax, r in zip(axes[0], rows):
+        c = r["curves"]
+        t, wall = 1000 * np.asarray(c["t"]), np.asarray(c["wall"])
+        scale = wall[:, 2].max()
+        ax.fill_between(t, wall[:, 0] / scale, wall[:, 4] / scale, color="C0", alpha=0.2, lw=0, label="wall 5–95 %")
+        ax.fill_between(t, wall[:, 1] / scale, wall[:, 3] / scale, color="C0", alpha=0.35, lw=0, label="wall 25–75 %")
+        ax.plot(t, wall[:, 2] / scale, "C0-", lw=1, label="wall median")
+        ax.plot(t, np.asarray(c["fe_implied"]) / np.max(c["fe_implied"]), "k-", lw=1.4, label="FE pressure as tension")
+        ax.plot(1000 * np.asarray(c["t_lo"]), np.asarray(c["lo_cell"]) / np.max(c["lo_cell"]), "C3--", lw=1.2, label="LO cell")
+        ax.set(xlabel="t (ms)", ylabel="Ta / peak of the median", title=f"{r['heart']}, condition {r['condition']}")
+    axes[0, 0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
