@@ -15,7 +15,6 @@ import argparse
 import json
 import pathlib
 import sys
-import time
 
 import numpy as np
 
@@ -23,7 +22,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 import lvenv  # noqa: E402
 from lvenv import multielement  # noqa: E402
-from scripts.bench_lo import cohort  # noqa: E402
+from scripts.bench_lo import cohort, timed  # noqa: E402
 
 BEATS, STEPS = 2, 1000
 #: The N wall's activation times at the candidates' quantiles less their median (s), at h = 6 mm
@@ -32,13 +31,7 @@ ONSETS = (-0.0198, -0.0088, 0.0, 0.0100, 0.0295)
 
 
 def _median_rate(run, n: int, repeats: int) -> float:
-    run()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - t0)
-    return BEATS * n / float(np.median(times))
+    return BEATS * n / float(np.median(timed(run, repeats)))
 
 
 def main() -> None:

@@ -75,6 +75,11 @@ def time_core(batch, config, dtype, repeats):
     kw = settings(config)
     run = lambda: jax.block_until_ready(run_beats_jit(p_dev, y_dev, jnp.asarray(1e-4, dtype), steps=kw["steps_per_beat"], max_beats=BEATS,
                                                       steady=False, record=False, scheme=kw["scheme"], step_tol=kw["step_tol"]))
+    return timed(run, repeats)
+
+
+def timed(run, repeats: int) -> list[float]:
+    """One untimed run of ``run`` (the compile), then the wall times (s) of ``repeats`` runs."""
     run()
     times = []
     for _ in range(repeats):
