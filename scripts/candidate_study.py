@@ -141,7 +141,7 @@ def hearts_mode(args, command: str) -> dict:
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
         for name, (lo, c, arr, seconds) in fits.items():
-            rows = generalisation(dataclasses.replace(heart, lo=lo), scenarios, arrangement=arr, progress=False, **oracle)
+            rows = generalisation(dataclasses.replace(heart, lo=lo), scenarios, arrangement=arr, progress=False, **oracle) if scenarios else []
             entry["candidates"][name] = {"training": _summary(lo, c, seconds),
                                          "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
             traces[name] = rows
