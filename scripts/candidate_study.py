@@ -154,7 +154,7 @@ def hearts_mode(args, command: str) -> dict:
              f"Goals: training C ≤ {100 * GOALS['training_C']:g} %, unseen C ≤ {100 * GOALS['unseen_C']:g} % and largest pressure "
              f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %. C and the largest pressure error (both %), the "
              "unseen scenarios as C / pressure error.", "",
-             "| heart | candidate | training C (① ② ③) | " + " | ".join(scenarios) + " | worst unseen C | worst pressure error |",
+             "| " + " | ".join(["heart", "candidate", "training C (① ② ③)", *scenarios, "worst unseen C", "worst pressure error"]) + " |",
              "|---|---|---|" + "---|" * len(scenarios) + "---|---|"]
     for entry in results:
         for name, cand in entry["candidates"].items():
@@ -162,8 +162,9 @@ def hearts_mode(args, command: str) -> dict:
             beats = " ".join(f"{100 * x:.1f}" for x in cand["training"]["C_beats"])
             worst = (f"{100 * max(u['C'] for u in unseen.values()):.1f} | {100 * max(u['max_rel_error_P'] for u in unseen.values()):.0f}"
                      if unseen else "– | –")
-            lines.append(f"| {entry['heart']} | {name} | {100 * cand['training']['C']:.2f} ({beats}) | "
-                         + " | ".join(f"{100 * unseen[s]['C']:.1f} / {100 * unseen[s]['max_rel_error_P']:.0f}" for s in scenarios) + f" | {worst} |")
+            cells = [entry["heart"], name, f"{100 * cand['training']['C']:.2f} ({beats})",
+                     *(f"{100 * unseen[s]['C']:.1f} / {100 * unseen[s]['max_rel_error_P']:.0f}" for s in scenarios), worst]
+            lines.append("| " + " | ".join(cells) + " |")
     name = f"candidates_hearts{suffix}"
     (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")
     if figure_rows:
