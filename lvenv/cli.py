@@ -679,7 +679,7 @@ def oracle_command(heart, case, backend, mesh_size, beats, plot_path, as_json) -
 
 
 #: Benchmarks of ``lvenv bench NAME``: scripts/bench_NAME.py of the source tree.
-BENCHES = ("lo", "env", "optim", "kriging", "fe", "cohort", "cold_start", "amortised")
+BENCHES = ("lo", "env", "optim", "kriging", "fe", "cohort", "cold_start", "amortised", "candidates")
 
 
 @app.command("bench", epilog=_EPILOG, context_settings={"ignore_unknown_options": True})
