@@ -149,9 +149,9 @@ def hearts_mode(args, command: str) -> dict:
         for i, r in enumerate(traces[args.candidates[0]]):
             figure_rows.append({**r, "heart": heart_name, "candidates": {n: traces[n][i]["lo"] for n in args.candidates[1:]}})
     dt = f"{1000 * args.dt:g} ms" if args.dt else "5 ms"
-    unseen_text = ("then run with its maps frozen in the unseen scenarios (one beat under condition ②, one parameter changed), "
-                   "given as C / largest pressure error (both %). " if scenarios else "(no unseen scenario run). ")
-    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = {dt}), " + unseen_text +
+    unseen_text = (", then run with its maps frozen in the unseen scenarios (one beat under condition ②, one parameter changed), "
+                   "given as C / largest pressure error (both %). " if scenarios else "; no unseen scenario run. ")
+    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = {dt})" + unseen_text +
              f"Goals: training C ≤ {100 * GOALS['training_C']:g} %, unseen C ≤ {100 * GOALS['unseen_C']:g} % and largest pressure "
              f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %.", "",
              "| " + " | ".join(["heart", "candidate", "training C (① ② ③)", *scenarios, "worst unseen C", "worst pressure error"]) + " |",
