@@ -22,7 +22,7 @@ Coupled beat (DESIGN §1.2, §4), one time step t → t + dt:
 With ``wall_quantiles`` (fractions in [0, 1]) every accepted step also records the
 distribution over the wall's quadrature points of the fibre stretch λ, its rate dλ/dt (1/s)
 and the active tension Ta (kPa): those quantiles and the mean of each (:meth:`CoupledBeat.wall_sample`),
-for comparing the wall with a single LO cell (issue 30's diagnosis).
+for comparing the wall with a single LO cell (`scripts/wall_diagnosis.py`).
 
 A failed Newton solve or secant halves dt (``max_cuts`` times at most), then raises
 :class:`~fe_oracle.result.OracleDidNotConverge`. Initial state: the LV at passive equilibrium

@@ -21,10 +21,11 @@ all from the documented initial state, then
    fit is repeated with the LO activation delay d (`lvenv.coupling.calcium`) trained alongside
    {μ1, μ2, γ}, and kept if it lowers C; both C are reported.
 
-**Multi-element LO hearts.** `fit_active`, `run_congruency` and `train_on` take an
+**Multi-element LO hearts.** `lo_beats`, `run_congruency` and `fit_active` take an
 ``arrangement`` (`lvenv.multielement.Arrangement`): the LO beats then come from
 `lvenv.multielement.simulate` with that arrangement instead of the single-cell `lvenv.simulate`,
-for comparing candidate low-order hearts against the same oracle runs (issue 30).
+for comparing candidate low-order hearts against the same oracle runs
+(`scripts/candidate_study.py`).
 
 The result, `lvenv.trained.TrainedLO`, holds the nine parameters, C per training beat, the
 passive fit's residual and the provenance (backend, mesh size, time step, the oracle runs' cache
