@@ -81,10 +81,9 @@ def arrangement(name: str, shifts: tuple[float, ...], lo: LOParams) -> Arrangeme
     return Arrangement("parallel", len(shifts), spread=(lo.mu1, lo.mu1), onsets=shifts)
 
 
-def train(data: congruency.OracleData, trained: LOParams, names, budget: int) -> dict:
-    """Each candidate of ``names`` on ``data``, from the single cell's ``trained`` maps:
-    name → (maps, C per training beat, arrangement, seconds)."""
-    shifts = onsets(data)
+def train(data: congruency.OracleData, trained: LOParams, names, budget: int, shifts: tuple[float, ...]) -> dict:
+    """Each candidate of ``names`` on ``data`` with the cells' onsets ``shifts`` (:func:`onsets`),
+    from the single cell's ``trained`` maps: name → (maps, C per training beat, arrangement, seconds)."""
     out = {}
     for name in names:
         t0 = time.perf_counter()
@@ -115,8 +114,9 @@ def dataset_mode(args, command: str) -> dict:
     for row in rows:
         data = campaign.oracle_data(campaign.DATASET, row["id"])
         trained = LOParams(**{f.name: row[f.name] for f in dataclasses.fields(LOParams)})
-        fits = train(data, trained, args.candidates, args.budget)
-        results.append({"id": row["id"], "onsets_ms": [1000 * x for x in onsets(data)],
+        shifts = onsets(data)
+        fits = train(data, trained, args.candidates, args.budget, shifts)
+        results.append({"id": row["id"], "onsets_ms": [1000 * x for x in shifts],
                         **{name: _summary(lo, c, s) for name, (lo, c, _, s) in fits.items()}})
     medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
     lines = [f"Made by `{command}`: each candidate trained on each anatomy's own FE training beats (campaign dataset, "
@@ -137,7 +137,7 @@ def hearts_mode(args, command: str) -> dict:
     for heart_name in args.hearts:
         heart = HEARTS[heart_name]()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
-        fits = train(data, builtin(heart_name).lo, args.candidates, args.budget)
+        fits = train(data, builtin(heart_name).lo, args.candidates, args.budget, onsets(data))
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
         for name, (lo, c, arr, seconds) in fits.items():
