@@ -21,7 +21,7 @@ all from the documented initial state, then
    fit is repeated with the LO activation delay d (`lvenv.coupling.calcium`) trained alongside
    {μ1, μ2, γ}, and kept if it lowers C; both C are reported.
 
-**Multi-element LO hearts.** `lo_beats`, `run_congruency` and `fit_active` take an
+**Multi-element LO hearts.** `one_beat`, `lo_beats`, `run_congruency` and `fit_active` take an
 ``arrangement`` (`lvenv.multielement.Arrangement`): the LO beats then come from
 `lvenv.multielement.simulate` with that arrangement instead of the single-cell `lvenv.simulate`,
 for comparing candidate low-order hearts against the same oracle runs
@@ -69,7 +69,7 @@ from optim.protocol import Bounds, padded, run
 
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
-    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
+    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
     "train", "train_on", "check_fidelity",
 ]
 
@@ -147,17 +147,25 @@ def training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams
     return [Heart(geometry=geometry, lo=lo, cell=cell, circulation=circ) for lo in los for circ in base]
 
 
-def lo_beats(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
+def one_beat(hearts: Sequence[Heart], steps_per_beat: int = 1000,
              arrangement: multielement.Arrangement | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One LO beat per (candidate, condition) of :func:`training_hearts`, one batched simulation:
-    (usable (members,), t (s), V (ml), P_lv (kPa), each (members, samples)). ``arrangement``:
-    a multi-element heart (`lvenv.multielement.simulate`) instead of the single cell."""
-    hearts = training_hearts(data.geometry, data.cell, los)
+    """One beat of each of ``hearts`` from the training-protocol state, one batched simulation of
+    the single-cell heart (`lvenv.simulate`) or, with ``arrangement``, of that multi-element heart
+    (`lvenv.multielement.simulate`): (status names (members,), t (s), V (ml), P_lv (kPa), each
+    (members, samples))."""
     if arrangement is None:
         sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
-        return is_usable(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv
+        return np.asarray(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv
     sim = multielement.simulate(hearts, arrangement, beats=1, steps_per_beat=steps_per_beat)
-    return is_usable(sim.status), sim.traces["t"], sim.traces["V"], sim.traces["P_lv"]
+    return np.asarray(sim.status), sim.traces["t"], sim.traces["V"], sim.traces["P_lv"]
+
+
+def lo_beats(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
+             arrangement: multielement.Arrangement | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One LO beat per (candidate, condition) of :func:`training_hearts` (:func:`one_beat`):
+    (usable (members,), t (s), V (ml), P_lv (kPa), each (members, samples))."""
+    status, t, v, p = one_beat(training_hearts(data.geometry, data.cell, los), steps_per_beat, arrangement)
+    return is_usable(status), t, v, p
 
 
 def run_congruency(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,

@@ -26,14 +26,14 @@ from lvenv.multielement import Arrangement
 from lvenv.params import LOParams
 from optim import congruency
 
-__all__ = ["WINDOWS", "MAX_SHIFT_S", "SHIFT_STEP_S", "valve_events", "window_masks", "decompose", "diagnose", "summary"]
+__all__ = ["WINDOWS", "MAX_SHIFT_S", "SHIFT_STEP_S", "crossings", "valve_events", "window_masks", "decompose", "diagnose", "summary"]
 
 WINDOWS = ("upstroke", "ejection", "relaxation", "filling")
 #: Largest time shift of the LO beat tried (s), and the step of the search (s).
 MAX_SHIFT_S, SHIFT_STEP_S = 0.1, 0.001
 
 
-def _crossings(t: np.ndarray, g: np.ndarray, rising: bool) -> np.ndarray:
+def crossings(t: np.ndarray, g: np.ndarray, rising: bool) -> np.ndarray:
     """Times where ``g`` changes sign upwards (``rising``) or downwards, linearly interpolated."""
     s = np.sign(g)
     idx = np.flatnonzero((s[:-1] <= 0) & (s[1:] > 0) if rising else (s[:-1] > 0) & (s[1:] <= 0))
@@ -48,17 +48,17 @@ def valve_events(traces: Mapping[str, np.ndarray]) -> dict[str, float]:
     and ``mvo`` the first mitral opening after it; NaN where missing."""
     t, p_lv, p_at, p_c = (np.asarray(traces[k], float) for k in ("t", "P_lv", "P_at", "P_c"))
     aortic, mitral = p_lv - p_c, p_at - p_lv
-    opens = _crossings(t, aortic, rising=True)
+    opens = crossings(t, aortic, rising=True)
     if not len(opens):
         return dict.fromkeys(("mvc", "avo", "avc", "mvo"), np.nan)
     avo = float(opens[0])
-    closings = _crossings(t, mitral, rising=False)
+    closings = crossings(t, mitral, rising=False)
     before = closings[closings <= avo]
     mvc = float(before[-1]) if len(before) else float(t[0])
-    shuts = _crossings(t, aortic, rising=False)
+    shuts = crossings(t, aortic, rising=False)
     after = shuts[shuts > avo]
     avc = float(after[-1]) if len(after) else np.nan
-    reopen = _crossings(t, mitral, rising=True)
+    reopen = crossings(t, mitral, rising=True)
     later = reopen[reopen > avc] if np.isfinite(avc) else reopen[:0]
     return {"mvc": mvc, "avo": avo, "avc": avc, "mvo": float(later[0]) if len(later) else np.nan}
 

@@ -55,13 +55,13 @@ from lvenv.plots import generalisation_figure  # noqa: E402
 from lvenv.trained import builtin  # noqa: E402
 from optim import campaign, congruency  # noqa: E402
 from optim.studies import UNSEEN, generalisation  # noqa: E402
+from scripts.train_presets import HEARTS  # noqa: E402
 
 #: Quantiles of the activation times the 5 cells start at.
 ONSET_QUANTILES = (0.05, 0.275, 0.5, 0.725, 0.95)
 CANDIDATES = ("single", "series-onsets", "parallel-onsets")
 #: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
 GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
-HEARTS = {"normal": presets.normal, "heart_failure": presets.heart_failure}
 TRAINED = (*congruency.ACTIVE_NAMES, "delay")
 
 
@@ -135,13 +135,13 @@ def hearts_mode(args, command: str) -> dict:
     scenarios = {} if args.no_unseen else UNSEEN
     suffix = "" if args.dt is None else f"_dt{1000 * args.dt:g}ms"
     for heart_name in args.hearts:
-        heart = HEARTS[heart_name]()
+        heart = getattr(presets, heart_name)()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
         fits = train(data, builtin(heart_name).lo, args.candidates, args.budget, onsets(data))
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
         for name, (lo, c, arr, seconds) in fits.items():
-            rows = generalisation(dataclasses.replace(heart, lo=lo), scenarios, arrangement=arr, progress=False, **oracle) if scenarios else []
+            rows = generalisation(dataclasses.replace(heart, lo=lo), scenarios, lo_arrangement=arr, progress=False, **oracle) if scenarios else []
             entry["candidates"][name] = {"training": _summary(lo, c, seconds),
                                          "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
             traces[name] = rows

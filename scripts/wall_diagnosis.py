@@ -48,11 +48,10 @@ from lvenv.params import CellParams, Heart  # noqa: E402
 from lvenv.simulation import simulate  # noqa: E402
 from lvenv.trained import builtin  # noqa: E402
 from optim import congruency, diagnosis  # noqa: E402
+from scripts.train_presets import HEARTS  # noqa: E402
 
 #: The quantiles over the quadrature points that the FE beat records.
 QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
-#: The geometry of each built-in trained heart.
-GEOMETRY = {"normal": presets.N_UNLOADED, "heart_failure": presets.HF_UNLOADED}
 #: Samples whose wall mean Ta is below this fraction of its peak carry no gain.
 GAIN_FLOOR = 0.1
 
@@ -71,13 +70,9 @@ def fe_beat(geometry, condition: int, mesh_size: float, dt: float, path: pathlib
 
 
 def _crossing(t: np.ndarray, y: np.ndarray, level: float, after: int, rising: bool) -> float:
-    """First time after index ``after`` where ``y`` crosses ``level`` (linear interpolation), ms."""
-    s = y[after:] - level
-    idx = np.flatnonzero((s[:-1] < 0) & (s[1:] >= 0) if rising else (s[:-1] > 0) & (s[1:] <= 0))
-    if not len(idx):
-        return float("nan")
-    i = after + idx[0]
-    return float(1000 * (t[i] + (level - y[i]) / (y[i + 1] - y[i]) * (t[i + 1] - t[i])))
+    """First time after index ``after`` where ``y`` crosses ``level`` (`optim.diagnosis.crossings`), ms."""
+    times = diagnosis.crossings(t[after:], y[after:] - level, rising)
+    return float(1000 * times[0]) if len(times) else float("nan")
 
 
 def timing(t: np.ndarray, ta: np.ndarray) -> dict[str, float]:
@@ -93,7 +88,7 @@ def timing(t: np.ndarray, ta: np.ndarray) -> dict[str, float]:
 def compare(name: str, condition: int, traces: dict[str, np.ndarray], meta: dict) -> dict:
     """The comparison of the module docstring for one FE beat and the trained LO heart ``name``."""
     trained = builtin(name)
-    lo, geometry = trained.lo, GEOMETRY[name]
+    lo, geometry = trained.lo, HEARTS[name][0]
     v0 = float(cavity_volume(geometry))
     heart = Heart(geometry=geometry, lo=lo, cell=CellParams(), circulation=presets.training_circulation(condition))
     sim = simulate(heart, beats=1, steps_per_beat=1000)
@@ -119,8 +114,8 @@ def compare(name: str, condition: int, traces: dict[str, np.ndarray], meta: dict
     fits = {}
     for j, label in enumerate([f"q{round(100 * q):02d}" for q in QUANTILES] + ["mean"]):
         q = ta_q[:, j]
-        gain = float(np.dot(q, ta_fe) / np.dot(q, q))
-        fits[label] = {"gain": gain, "rel_residual": float(np.linalg.norm(ta_fe - gain * q) / np.linalg.norm(ta_fe))}
+        fitted = float(np.dot(q, ta_fe) / np.dot(q, q))
+        fits[label] = {"gain": fitted, "rel_residual": float(np.linalg.norm(ta_fe - fitted * q) / np.linalg.norm(ta_fe))}
     return {"heart": name, "condition": condition, "C": c, "mu2": lo.mu2, "delay_ms": 1000 * lo.delay,
             "activation_quantiles_ms": [1000 * x for x in meta.get("activation_quantiles_s", [])],
             "timing": {"wall_mean": timing(t, ta_mean), "wall_median": timing(t, ta_q[:, 2]), "fe_implied": timing(t, ta_fe),
@@ -132,7 +127,7 @@ def compare(name: str, condition: int, traces: dict[str, np.ndarray], meta: dict
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--hearts", nargs="+", choices=sorted(GEOMETRY), default=sorted(GEOMETRY))
+    parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS))
     parser.add_argument("--conditions", nargs="+", type=int, choices=congruency.CONDITIONS, default=list(congruency.CONDITIONS))
     parser.add_argument("--mesh-size", type=float, default=6.0, help="oracle mesh size h (mm)")
     parser.add_argument("--dt", type=float, default=0.005, help="oracle time step (s)")
@@ -144,7 +139,7 @@ def main() -> None:
     for name in args.hearts:
         for k in args.conditions:
             t0 = time.perf_counter()
-            traces, meta = fe_beat(GEOMETRY[name], k, args.mesh_size, args.dt, out / "wall" / f"{name}_{k}_h{args.mesh_size:g}_dt{1000 * args.dt:g}ms.npz")
+            traces, meta = fe_beat(HEARTS[name][0], k, args.mesh_size, args.dt, out / "wall" / f"{name}_{k}_h{args.mesh_size:g}_dt{1000 * args.dt:g}ms.npz")
             rows.append(compare(name, k, traces, meta) | {"seconds": time.perf_counter() - t0})
             print(f"{name} condition {k}: C {100 * rows[-1]['C']:.2f} %", file=sys.stderr, flush=True)
     command = "python scripts/wall_diagnosis.py " + " ".join(sys.argv[1:])
