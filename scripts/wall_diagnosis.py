@@ -131,7 +131,7 @@ def main() -> None:
     parser.add_argument("--conditions", nargs="+", type=int, choices=congruency.CONDITIONS, default=list(congruency.CONDITIONS))
     parser.add_argument("--mesh-size", type=float, default=6.0, help="oracle mesh size h (mm)")
     parser.add_argument("--dt", type=float, default=0.005, help="oracle time step (s)")
-    parser.add_argument("--out", default="out/wall", help="folder of the FE beats (resumed from)")
+    parser.add_argument("--out", default="out/diagnosis", help="folder of wall.md, wall.png and the FE beats (wall/, resumed from)")
     args = parser.parse_args()
     out = pathlib.Path(args.out)
     (out / "wall").mkdir(parents=True, exist_ok=True)
