@@ -313,25 +313,33 @@ def _parameter_table(parameters: dict[str, float]) -> Table:
     return table
 
 
+#: --posterior importance: flow draws per patient reweighted by the exact posterior, per posterior draw.
+IMPORTANCE_PER_SAMPLE = 2
+
+
 def _posterior_options(command):
     """``--posterior``, ``--samples`` and ``--refine`` of ``fit`` and ``cohort``."""
     command = click.option("--refine", is_flag=True,
-                           help="for patients flagged out of distribution (or not covered by the estimator), run the MCMC posterior "
-                                "(optim.identify.posterior, minutes each) instead, started from the amortised median (the sampler "
-                                "takes one start point, not the samples); needs --posterior amortised")(command)
+                           help="for patients flagged (out of distribution, unreliable importance weights, or not covered by the "
+                                "estimator), run the MCMC posterior (optim.identify.posterior, minutes each) instead, started from the "
+                                "amortised median (the sampler takes one start point, not the samples); needs --posterior")(command)
     command = click.option("--samples", "n_samples", type=click.IntRange(min=8), default=None,
-                           help="posterior draws per patient [default: 1000]; needs --posterior amortised")(command)
-    return click.option("--posterior", type=click.Choice(("amortised",)), default=None,
+                           help="posterior draws per patient [default: 1000]; needs --posterior")(command)
+    return click.option("--posterior", type=click.Choice(("amortised", "importance")), default=None,
                         help="also the posterior of every fitted parameter: median and 90 % interval from the shipped amortised "
-                             "estimator (optim.amortised), with its out-of-distribution flag")(command)
+                             "estimator (optim.amortised), with its out-of-distribution flag; 'importance' reweights "
+                             f"{IMPORTANCE_PER_SAMPLE} flow draws per posterior draw by the exact posterior (one simulation each, "
+                             "about 1-2 s per patient), flagging unreliable weights")(command)
 
 
-def _check_posterior_options(posterior, n_samples, refine) -> int:
-    """A usage error naming the option for --samples or --refine without --posterior; the draws per patient."""
+def _check_posterior_options(posterior, n_samples, refine) -> tuple[int, int]:
+    """A usage error naming the option for --samples or --refine without --posterior; the draws per
+    patient and the importance proposals per patient (0 unless --posterior importance)."""
     for given, option in ((n_samples is not None, "--samples"), (refine, "--refine")):
         if given and posterior is None:
-            raise click.UsageError(f"{option} applies to a posterior: give --posterior amortised with it")
-    return 1000 if n_samples is None else n_samples
+            raise click.UsageError(f"{option} applies to a posterior: give --posterior amortised or importance with it")
+    n_samples = 1000 if n_samples is None else n_samples
+    return n_samples, IMPORTANCE_PER_SAMPLE * n_samples if posterior == "importance" else 0
 
 
 def _refining(done: int, total: int, name: str) -> None:
@@ -352,15 +360,21 @@ def _map_table(spread: dict, fitted: dict[str, float]) -> Table:
 
 
 def _posterior_payload(identified) -> dict:
-    """JSON of one :class:`optim.amortised.Identified` (internal units)."""
+    """JSON of one :class:`optim.amortised.Identified` (internal units); an importance-weighted
+    posterior adds its weights' effective sample size and Pareto k."""
     post = identified.posterior
-    return {"sampler": None if post is None else post.sampler, "refined": identified.refined, "out_of_distribution": bool(identified.flag),
-            "reason": identified.flag, "median": None if post is None else post.median, "interval_90": None if post is None else post.interval_90}
+    payload = {"sampler": None if post is None else post.sampler, "refined": identified.refined, "out_of_distribution": bool(identified.flag),
+               "reason": identified.flag, "median": None if post is None else post.median, "interval_90": None if post is None else post.interval_90}
+    if post is not None and post.sampler == "importance":
+        payload.update(ess=next(iter(post.ess.values())), pareto_k=post.pareto_k)
+    return payload
 
 
 def _posterior_table(identified) -> Table:
     post = identified.posterior
-    what = "no posterior" if post is None else f"MCMC ({post.sampler}), refined" if identified.refined else "amortised"
+    what = ("no posterior" if post is None else f"MCMC ({post.sampler}), refined" if identified.refined
+            else f"amortised, importance-weighted (ESS {next(iter(post.ess.values())):.0f} of {post.evaluations}, Pareto k {post.pareto_k:.2f})"
+            if post.sampler == "importance" else "amortised")
     flag = f"; FLAGGED: {identified.flag}" if identified.flag else ""
     table = Table(title=f"posterior of {identified.patient}: {what}{flag}", title_justify="left")
     for col in ("parameter", "median", "5 %", "95 %", "units"):
@@ -406,7 +420,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     from optim.fit import DEFAULT_OPTIONS, make_env, warm_up
     from optim.minimize import minimize
 
-    n_samples = _check_posterior_options(posterior, n_samples, refine)
+    n_samples, importance = _check_posterior_options(posterior, n_samples, refine)
     record = _patient_arg(patient)
     if map_draws == 1:
         raise click.UsageError("--map-draws needs at least 2 draws (0: no refits)")
@@ -467,8 +481,9 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     if posterior is not None:
         from optim.identify import identify_patients
 
-        with _working("amortised posterior"):
-            identified = identify_patients([record], n_samples, seed=seed, refine=refine, mcmc_options={"plausibility": plausibility}, progress=_refining)[0]
+        with _working("amortised posterior" + (", importance-weighted" if importance else "")):
+            identified = identify_patients([record], n_samples, seed=seed, refine=refine, mcmc_options={"plausibility": plausibility}, progress=_refining,
+                                           importance=importance)[0]
         payload["posterior"] = _posterior_payload(identified)
     if fidelity and ok:
         try:
@@ -534,14 +549,14 @@ def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, 
     DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out. A row
     with geometry columns (Rb_mm ... C0_deg, unloaded) is fitted with its anatomy's LO maps
     (--maps; the output's maps column says which). With
-    --posterior amortised each row also gets every parameter's posterior median and 90 % interval
+    --posterior amortised (or importance) each row also gets every parameter's posterior median and 90 % interval
     (<column>_post_median, _post_q05, _post_q95) and its flag (post_ood, post_ood_reason)."""
     from optim.cohort import CohortOptions, PosteriorOptions, run_cohort
 
-    n_samples = _check_posterior_options(posterior, n_samples, refine)
+    n_samples, importance = _check_posterior_options(posterior, n_samples, refine)
     given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed, "maps": maps}
     options = CohortOptions(**{k: v for k, v in given.items() if v is not None})
-    posterior_options = None if posterior is None else PosteriorOptions(n_samples, refine, options.seed, {"plausibility": options.plausibility})
+    posterior_options = None if posterior is None else PosteriorOptions(n_samples, refine, options.seed, {"plausibility": options.plausibility}, importance)
 
     def report_bad(bad) -> None:
         _err.print(f"{reports}: line {bad.line}{f' (id {bad.id})' if bad.id else ''}: {bad.reason}; skipped", markup=False, soft_wrap=True)

@@ -21,9 +21,16 @@ same steps, so they always lie inside the bounds. The condition vector c (:data:
   same way (a mask bit each) in a later artefact;
 * the heart rate (1/min), drawn uniformly in the artefact's ``heart_rate`` range;
 * the six unloaded-geometry parameters of :class:`lvenv.geometry.Geometry` (mm, degrees),
-  standardised. Today each training heart is one of the artefact's base presets (``bases``),
-  so these columns only tell the bases apart; once anatomy-specific LO maps exist, a training
-  set drawn over the anatomy box uses the same columns.
+  standardised: each pair's own heart's (``PriorSample.geometry``).
+
+Hearts. An artefact's ``bases`` are the heart kinds its pairs were drawn over (:data:`KINDS`):
+the base presets (N and HF, each with its own trained maps) and :data:`ANATOMY`, hearts whose
+geometry is uniform in the anatomy campaign's box and whose LO maps are the anatomy regression's
+prediction for it (:func:`anatomy_heart`), as a cohort row or a patient record with a geometry
+and ``"lo": "regression"`` gets them. :func:`covered_geometry` says whether a patient's heart is
+one of them (up to the six parameters and the heart rate) and gives its geometry row; the
+anatomy kind pins the regression (its dataset's hash) in the artefact's prior, so a refitted
+regression asks for a retrained estimator.
 
 Flow: a coupling flow of rational-quadratic splines (Durkan C et al., NeurIPS 2019;
 ``flowjax.flows.coupling_flow``), fast in both directions, trained by maximum likelihood with Adam
@@ -75,16 +82,17 @@ import numpy as np
 from lvenv import archive, presets
 from lvenv.archive import ArchiveError
 from lvenv.geometry import Geometry
-from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace, from_logit, to_logit
+from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, LOGIT_EDGE, ParameterSpace, from_logit, to_logit
 from lvenv.params import Heart
 from lvenv.patients import Patient
 from lvenv.plausibility import resolve as resolve_bands
 from lvenv.validation import InputError, integer, real
-from optim.identify.density import PriorSample, prior_sample
+from optim.identify.density import ARRAYS, PriorSample, prior_sample
 from optim.identify.noise import NOISE, Relative, measurement_sd
 
 __all__ = ["OBSERVED", "GEOMETRY", "CONDITION", "BASES", "HEART_RATE", "MISSING", "OOD_QUANTILE", "OOD_COMPONENTS", "OOD_FIT_ROWS", "FORMAT", "VERSION",
-           "DEFAULT_ARTEFACT", "DRAWS_FORMAT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "save_draws", "load_draws", "train", "save", "load", "base_index", "observations",
+           "DEFAULT_ARTEFACT", "DRAWS_FORMAT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "save_draws", "load_draws", "train", "save", "load", "covered_geometry", "anatomy_heart", "observations", "ANATOMY", "KINDS",
+           "PAIRS_PER_ANATOMY", "ANATOMY_SEED",
            "HELD_OUT_TARGETS", "held_out_patients"]
 
 #: The targets the estimator conditions on (internal units: EF fraction, times s, pressures kPa).
@@ -95,6 +103,18 @@ GEOMETRY = tuple(f.name for f in dataclasses.fields(Geometry))
 CONDITION = (*OBSERVED, *(f"mask_{k}" for k in OBSERVED), "HR", *GEOMETRY)
 #: The base presets a default training set draws its hearts from (:mod:`lvenv.presets`).
 BASES = ("normal", "heart_failure")
+#: The heart kind drawn over anatomies: the N preset's cell and circulation with an unloaded
+#: geometry uniform in the anatomy campaign's box (:data:`optim.campaign.BOX`) and the LO maps the
+#: anatomy regression predicts for it (:func:`lvenv.anatomy.predicted_maps`), as a cohort row or a
+#: patient record with a geometry gets them.
+ANATOMY = "anatomy"
+#: Every heart kind a training set may draw from, in the order an estimator lists them; a pair's
+#: ``base`` (:class:`optim.identify.PriorSample`) is its kind's index here.
+KINDS = (*BASES, ANATOMY)
+#: Pairs drawn per anatomy of the :data:`ANATOMY` kind (so a chunk of 5,000 pairs has 1,250 anatomies).
+PAIRS_PER_ANATOMY = 4
+#: Added to the seed of the :data:`ANATOMY` kind's draws, so that they never share a stream with the presets'.
+ANATOMY_SEED = 1_000_000
 #: Default heart-rate range of the training set (1/min).
 HEART_RATE = (40.0, 120.0)
 #: Probability that a training row's target is masked out.
@@ -168,11 +188,15 @@ def _code_version() -> str:
     return f"{version}+{commit}" if commit else version
 
 
+#: Placeholder targets of the training patients (only their names reach
+#: :func:`optim.identify.prior_sample`).
+_TARGETS = {"EF": 0.6, "ET": 0.3, "IVRT": 0.08, "P_ao_dia": 10.0, "P_ao_mean": 12.5, "P_ao_pulse": 6.0}
+
+
 def training_patients(bases: Sequence[str] = BASES) -> list[Patient]:
     """One patient per base preset, targeting :data:`OBSERVED` (the target values are unused:
     only their names reach :func:`optim.identify.prior_sample`)."""
-    targets = {"EF": 0.6, "ET": 0.3, "IVRT": 0.08, "P_ao_dia": 10.0, "P_ao_mean": 12.5, "P_ao_pulse": 6.0}
-    return [Patient(name, _base_heart(name), targets) for name in bases]
+    return [Patient(name, _base_heart(name), _TARGETS) for name in bases]
 
 
 def _base_heart(name: str) -> Heart:
@@ -181,13 +205,57 @@ def _base_heart(name: str) -> Heart:
     return getattr(presets, name)()
 
 
+@functools.lru_cache(maxsize=4096)
+def anatomy_heart(geometry: Geometry) -> Heart:
+    """The heart of the :data:`ANATOMY` kind with this unloaded ``geometry``: the N preset with
+    the anatomy regression's LO maps for it (:func:`lvenv.anatomy.predicted_maps`; cached, since
+    :func:`covered_geometry` asks again for every patient, 2.6 ms a prediction)."""
+    from lvenv.anatomy import predicted_maps
+
+    return presets.normal().replace(geometry=geometry, lo=predicted_maps(geometry)[0])
+
+
+def _kinds(bases: Sequence[str]) -> tuple[str, ...]:
+    """``bases`` checked: distinct heart kinds of :data:`KINDS`, in its order."""
+    bases = tuple(bases)
+    if not bases or any(b not in KINDS for b in bases) or tuple(k for k in KINDS if k in bases) != bases:
+        raise InputError(f"bases = {list(bases)}: give distinct heart kinds of {list(KINDS)}, in that order")
+    return bases
+
+
+def _anatomy_box() -> dict[str, tuple[float, float]]:
+    from optim.campaign import BOX
+
+    return {name: (float(lo), float(hi)) for name, (lo, hi) in BOX.items()}
+
+
 def simulate(n: int, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, float] = HEART_RATE, seed: int = 0, batch: int = 256) -> Any:
     """``n`` (parameters, noise-free observation) pairs from :func:`optim.identify.posterior`'s
-    prior (:func:`optim.identify.prior_sample`), each heart one of ``bases`` at a heart rate
-    uniform in ``heart_rate`` (1/min), simulated ``batch`` at a time; failed members are left out
-    and counted by status (``PriorSample.left_out``)."""
+    prior (:func:`optim.identify.prior_sample`) at heart rates uniform in ``heart_rate``
+    (1/min), simulated ``batch`` at a time; failed members are left out and counted by status
+    (``PriorSample.left_out``). ``bases``: the heart kinds (:data:`KINDS`), each with an equal
+    share of the pairs: a pair of the presets is one of them at random, and the :data:`ANATOMY`
+    kind draws one anatomy per :data:`PAIRS_PER_ANATOMY` pairs (uniform in the box, seed
+    ``[seed, 7]``; its pairs' seed is ``seed +`` :data:`ANATOMY_SEED`). Each pair's ``base`` is
+    its kind's index in :data:`KINDS`, its ``geometry`` its heart's."""
+    from optim.identify import PriorSample
 
-    return prior_sample(n, training_patients(bases), heart_rate=heart_rate, seed=seed, batch=batch)
+    n, kinds = integer("n", n, 1), _kinds(bases)
+    preset_kinds = [k for k in kinds if k != ANATOMY]
+    n_anatomy = n // len(kinds) if ANATOMY in kinds else 0
+    parts = []
+    if preset_kinds:
+        part = prior_sample(n - n_anatomy, training_patients(preset_kinds), heart_rate=heart_rate, seed=seed, batch=batch)
+        parts.append(dataclasses.replace(part, base=np.array([KINDS.index(preset_kinds[b]) for b in part.base], int)))
+    if n_anatomy:
+        box = _anatomy_box()
+        rng = np.random.default_rng([seed, 7])
+        count = -(-n_anatomy // PAIRS_PER_ANATOMY)
+        shapes = rng.uniform([lo for lo, _ in box.values()], [hi for _, hi in box.values()], (count, len(box)))
+        patients = [Patient(f"anatomy{j}", anatomy_heart(Geometry(**dict(zip(box, map(float, row))))), _TARGETS) for j, row in enumerate(shapes)]
+        part = prior_sample(n_anatomy, patients, heart_rate=heart_rate, seed=seed + ANATOMY_SEED, batch=batch)
+        parts.append(dataclasses.replace(part, base=np.full(len(part.base), KINDS.index(ANATOMY))))
+    return PriorSample.concatenate(parts)
 
 
 DRAWS_FORMAT = "lvenv-amortised-draws"
@@ -198,29 +266,45 @@ def save_draws(draws: PriorSample, path: str | pathlib.Path, *, seeds: Sequence[
     """Write simulated pairs (:func:`simulate` over ``bases`` and ``heart_rate``, made with the
     ``seeds`` given) to ``path``, an :mod:`lvenv.archive` ``.npz`` that :func:`load_draws` reads
     back: the training set of a long simulation survives an interruption."""
-    arrays = {"parameters": draws.parameters, "observations": draws.observations, "heart_rate": draws.heart_rate, "base": draws.base}
+    arrays = {name: getattr(draws, name) for name in ARRAYS}
     meta = {"format": DRAWS_FORMAT, "names": list(draws.names), "tried": int(draws.tried), "left_out": dict(draws.left_out),
             "seeds": [int(v) for v in seeds], "prior": _prior_meta(bases, heart_rate), "code_version": _code_version()}
     return archive.save(path, arrays, meta)
 
 
-def load_draws(path: str | pathlib.Path, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, float] = HEART_RATE) -> tuple[PriorSample, list[int], str]:
-    """The pairs :func:`save_draws` wrote to ``path``, the seeds they were made with and the code
-    version that made them; :class:`lvenv.archive.ArchiveError` if the file is not such pairs of
-    :data:`OBSERVED`, or was drawn under another prior than this code's over ``bases`` and ``heart_rate``."""
+def load_draws(path: str | pathlib.Path, *, bases: Sequence[str] | None = None,
+               heart_rate: tuple[float, float] = HEART_RATE) -> tuple[PriorSample, list[int], str, tuple[str, ...]]:
+    """The pairs :func:`save_draws` wrote to ``path``, the seeds they were made with, the code
+    version that made them and their heart kinds; :class:`lvenv.archive.ArchiveError` if the file
+    is not such pairs of :data:`OBSERVED`, or was drawn under another prior than this code's over
+    its kinds (``bases``, if given, must be them) and ``heart_rate``. A file written before pairs
+    carried their geometry gets it from its base presets."""
     arrays, meta = archive.load(path, "amortised training pairs")
     what = f"training pairs {str(path)!r}"
     if meta.get("format") != DRAWS_FORMAT or meta.get("names") != list(OBSERVED):
         raise ArchiveError(f"{what} are not {DRAWS_FORMAT!r} pairs of {list(OBSERVED)} (format {meta.get('format')!r}, targets {meta.get('names')})")
-    if not _json_equal(meta.get("prior"), _prior_meta(bases, heart_rate)):
-        raise ArchiveError(f"{what} were drawn under the prior {meta.get('prior')}, not this code's {_prior_meta(bases, heart_rate)}; simulate new ones")
+    recorded = (meta.get("prior") or {}).get("bases") if isinstance(meta.get("prior"), dict) else None
+    try:
+        kinds = _kinds(recorded if bases is None else bases)
+        expected = _prior_meta(kinds, heart_rate)
+    except (InputError, TypeError):
+        raise ArchiveError(f"{what} were drawn over the heart kinds {recorded}, not kinds of {list(KINDS)}") from None
+    if not _json_equal(meta.get("prior"), expected):
+        raise ArchiveError(f"{what} were drawn under the prior {meta.get('prior')}, not this code's {expected}; simulate new ones")
     n = len(arrays.get("parameters", ()))
-    shapes = {"parameters": (n, len(DEFAULT_ACTION_PARAMS)), "observations": (n, len(OBSERVED)), "heart_rate": (n,), "base": (n,)}
+    if "geometry" not in arrays and ANATOMY not in kinds and "base" in arrays:
+        shapes = np.array([[getattr(_base_heart(k).geometry, g) for g in GEOMETRY] for k in kinds])
+        arrays["geometry"] = shapes[np.clip(arrays["base"].astype(int), 0, len(kinds) - 1)]
+    shapes = {"parameters": (n, len(DEFAULT_ACTION_PARAMS)), "observations": (n, len(OBSERVED)), "heart_rate": (n,), "base": (n,),
+              "geometry": (n, len(GEOMETRY))}
     if any(arrays.get(k) is None or arrays[k].shape != shape for k, shape in shapes.items()):
         raise ArchiveError(f"{what}: arrays {[(k, getattr(arrays.get(k), 'shape', None)) for k in shapes]} do not have the shapes {list(shapes.values())}")
-    draws = PriorSample(arrays["parameters"], arrays["observations"], arrays["heart_rate"], arrays["base"].astype(int), tuple(OBSERVED),
+    base = arrays["base"].astype(int)
+    if not set(np.unique(base)) <= {KINDS.index(k) for k in kinds}:
+        raise ArchiveError(f"{what}: pairs of heart kinds {sorted({KINDS[b] for b in np.unique(base) if 0 <= b < len(KINDS)})} outside the file's {list(kinds)}")
+    draws = PriorSample(arrays["parameters"], arrays["observations"], arrays["heart_rate"], base, arrays["geometry"], tuple(OBSERVED),
                         int(meta["tried"]), {str(k): int(v) for k, v in meta["left_out"].items()})
-    return draws, [int(v) for v in meta["seeds"]], str(meta.get("code_version"))
+    return draws, [int(v) for v in meta["seeds"]], str(meta.get("code_version")), kinds
 
 
 def _noise_sd(noise: Mapping[str, Any]) -> np.ndarray:
@@ -232,14 +316,27 @@ def _noise_sd(noise: Mapping[str, Any]) -> np.ndarray:
     return measurement_sd(dict.fromkeys(OBSERVED, 1.0), noise)
 
 
-def base_index(heart: Heart, bases: Sequence[str]) -> int:
-    """Index of the base preset ``heart`` is, up to the six parameters and the heart rate;
-    :class:`InputError` naming the bases if it is none of them."""
+def covered_geometry(heart: Heart, bases: Sequence[str]) -> np.ndarray:
+    """The unloaded geometry (:data:`GEOMETRY`, (6,)) of ``heart`` if an estimator over the heart
+    kinds ``bases`` covers it, up to the six parameters and the heart rate: one of its base
+    presets, or, with :data:`ANATOMY`, the N preset with a geometry inside the anatomy box and the
+    maps the anatomy regression predicts for it (:func:`anatomy_heart`). :class:`InputError`
+    saying why not otherwise."""
     free = (*DEFAULT_ACTION_PARAMS, "HR")
-    for j, name in enumerate(bases):
-        if heart.replace(**{k: heart.get(k) for k in free}) == _base_heart(name).replace(**{k: heart.get(k) for k in free}):
-            return j
-    raise InputError(f"the patient's heart is none of the estimator's base presets {list(bases)} (up to {free}); "
+    same = lambda other: heart.replace(**{k: heart.get(k) for k in free}) == other.replace(**{k: heart.get(k) for k in free})
+    row = np.array([float(getattr(heart.geometry, g)) for g in GEOMETRY])
+    for name in bases:
+        if name != ANATOMY and same(_base_heart(name)):
+            return row
+    if ANATOMY in bases:
+        box = _anatomy_box()
+        outside = [f"{k} = {getattr(heart.geometry, k):g} outside [{lo:g}, {hi:g}]" for k, (lo, hi) in box.items() if not lo <= getattr(heart.geometry, k) <= hi]
+        if outside:
+            raise InputError(f"the patient's geometry is outside the amortised estimator's anatomy box ({'; '.join(outside)}); use optim.identify.posterior")
+        if same(anatomy_heart(heart.geometry)):
+            return row
+    kinds = [b for b in bases if b != ANATOMY] + (["the N preset with any geometry in the anatomy box and its regression maps"] if ANATOMY in bases else [])
+    raise InputError(f"the patient's heart is none of the estimator's hearts ({'; '.join(kinds)}; up to {free}); "
                      "the amortised posterior covers only those: use optim.identify.posterior")
 
 
@@ -287,13 +384,13 @@ class Estimator:
     def heart_rate(self) -> tuple[float, float]:
         return tuple(self.meta["prior"]["heart_rate"])
 
-    def condition(self, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray) -> np.ndarray:
+    def condition(self, obs: np.ndarray, heart_rate: np.ndarray, geometry: np.ndarray) -> np.ndarray:
         """Condition vectors (n, len(:data:`CONDITION`)) of observations ``obs`` (n, 6; NaN where
-        missing, internal units), heart rates (n,) 1/min and base indices (n,)."""
+        missing, internal units), heart rates (n,) 1/min and unloaded geometries (n, 6;
+        :data:`GEOMETRY`, mm and degrees)."""
         mask = np.isfinite(obs)
         y = np.where(mask, (obs - self.arrays["obs_mean"]) / self.arrays["obs_sd"], 0.0)
-        geometry = np.array([[getattr(_base_heart(b).geometry, g) for g in GEOMETRY] for b in self.bases])[np.asarray(base, int)]
-        rest = np.column_stack([heart_rate, geometry])
+        rest = np.column_stack([heart_rate, np.asarray(geometry, float).reshape(len(obs), len(GEOMETRY))])
         return np.column_stack([y, mask, (rest - self.arrays["rest_mean"]) / self.arrays["rest_sd"]])
 
     def out_of_distribution(self, obs: np.ndarray, heart_rate: np.ndarray) -> list[str]:
@@ -338,25 +435,31 @@ class Estimator:
 
         return jax.jit(draw, static_argnums=2)
 
-    def sample(self, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray, n_samples: int, seed: int = 0) -> np.ndarray:
+    def sample(self, obs: np.ndarray, heart_rate: np.ndarray, geometry: np.ndarray, n_samples: int, seed: int = 0) -> np.ndarray:
         """``n_samples`` posterior draws per row: (n, n_samples, 6), physical units, columns
         :data:`DEFAULT_ACTION_PARAMS`. One jitted pass over all rows (:func:`_coupling_inverse`,
         float32); a row's draws depend on ``seed`` and on its block of :data:`SAMPLE_BLOCK` rows."""
         import jax
 
-        cond = self.condition(obs, heart_rate, base)
+        cond = self.condition(obs, heart_rate, geometry)
         n = len(cond)
         padded = np.concatenate([cond, np.repeat(cond[-1:], -n % SAMPLE_BLOCK, axis=0)]).astype(np.float32)
         z = np.asarray(self._sampler(jax.random.key(seed), padded, integer("n_samples", n_samples, 1))[:n], np.float64)
         z = z * self.arrays["theta_sd"] + self.arrays["theta_mean"]
         return ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).from_unit(from_logit(z))
 
-    def log_prob(self, x: np.ndarray, obs: np.ndarray, heart_rate: np.ndarray, base: np.ndarray) -> np.ndarray:
-        """log q(z | c) of physical parameters ``x`` (n, 6) in the flow's standardised logit coordinates."""
-        z = (to_logit(ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).to_unit(x)) - self.arrays["theta_mean"]) / self.arrays["theta_sd"]
+    def log_density(self, x: np.ndarray, obs: np.ndarray, heart_rate: np.ndarray, geometry: np.ndarray) -> np.ndarray:
+        """log q(u | c) of physical parameters ``x`` (n, 6) given each row's condition: the flow's
+        density in the unit-cube coordinates u of the identification bounds (log scale on log
+        axes), where :func:`optim.identify.log_density` gives the posterior's, so that their
+        difference is an importance weight. log q(u) = log q_z(z) − Σ_k [log sd_k + log u_k +
+        log(1 − u_k)], z = (logit u − mean) / sd the flow's standardised coordinates."""
         import paramax
 
-        return np.asarray(paramax.unwrap(self.flow).log_prob(z, self.condition(obs, heart_rate, base)))
+        u = np.clip(ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).to_unit(x), LOGIT_EDGE, 1.0 - LOGIT_EDGE)
+        z = (to_logit(u) - self.arrays["theta_mean"]) / self.arrays["theta_sd"]
+        log_q = np.asarray(paramax.unwrap(self.flow).log_prob(z, self.condition(obs, heart_rate, geometry)), np.float64)
+        return log_q - np.sum(np.log(self.arrays["theta_sd"]) + np.log(u) + np.log1p(-u), axis=1)
 
 
 #: Rows of conditions per block of the jitted draw (:meth:`Estimator.sample`): a block's
@@ -440,8 +543,17 @@ def _noisy_masked(clean: np.ndarray, sigma: np.ndarray, rng: np.random.Generator
 
 
 def _prior_meta(bases: Sequence[str], heart_rate: tuple[float, float]) -> dict[str, Any]:
-    return {"bounds": {n: [ACTION_BOUNDS[n].lo, ACTION_BOUNDS[n].hi, ACTION_BOUNDS[n].log] for n in DEFAULT_ACTION_PARAMS},
+    """The prior as the metadata records it; with :data:`ANATOMY`, also the anatomy box and the
+    anatomy regression's identity (its dataset's SHA-256 and its count of training anatomies), which set those hearts."""
+    meta = {"bounds": {n: [ACTION_BOUNDS[n].lo, ACTION_BOUNDS[n].hi, ACTION_BOUNDS[n].log] for n in DEFAULT_ACTION_PARAMS},
             "plausibility": [b.describe() for b in resolve_bands(True)], "heart_rate": list(heart_rate), "bases": list(bases)}
+    if ANATOMY in bases:
+        from lvenv.anatomy import load_regression
+
+        regression = load_regression()
+        meta["anatomy"] = {"box": {k: list(v) for k, v in _anatomy_box().items()},
+                           "regression": {"dataset_sha256": regression.provenance.get("dataset_sha256"), "anatomies": len(regression.ids)}}
+    return meta
 
 
 def train(
@@ -475,26 +587,28 @@ def train(
 
     if tuple(draws.names) != OBSERVED:
         raise InputError(f"the draws observe {draws.names}; the estimator needs {OBSERVED}")
+    kinds = _kinds(bases)
+    if stray := sorted({KINDS[b] for b in np.unique(draws.base)} - set(kinds)):
+        raise InputError(f"the draws hold hearts of kinds {stray} that bases = {list(kinds)} leave out")
     seed, copies = integer("seed", seed, 0), integer("copies", copies, 1)
     val_prop = real("val_prop", val_prop, 0.0, 0.5, lo_open=True)
     sigma = _noise_sd(NOISE if noise is None else noise)
     rng = np.random.default_rng(seed)
     x = np.tile(draws.parameters, (copies, 1))
     obs = _noisy_masked(np.tile(draws.observations, (copies, 1)), sigma, rng)
-    hr, base = np.tile(draws.heart_rate, copies), np.tile(draws.base, copies)
+    hr, geometry = np.tile(draws.heart_rate, copies), np.tile(draws.geometry, (copies, 1))
     order, n_val = _validation_first(len(draws.parameters), copies, val_prop, rng)
-    x, obs, hr, base = x[order], obs[order], hr[order], base[order]
+    x, obs, hr, geometry = x[order], obs[order], hr[order], geometry[order]
     z = to_logit(ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).to_unit(x))
-    geometry = np.array([[getattr(_base_heart(b).geometry, g) for g in GEOMETRY] for b in bases])[base]
     rest = np.column_stack([hr, geometry])
     rest_sd = rest.std(axis=0)
     arrays = {"theta_mean": z.mean(axis=0), "theta_sd": z.std(axis=0), "obs_mean": np.nanmean(obs, axis=0), "obs_sd": np.nanstd(obs, axis=0),
               "rest_mean": rest.mean(axis=0), "rest_sd": np.where(rest_sd > 0, rest_sd, 1.0)}
     meta = {"format": FORMAT, "version": VERSION, "parameters": list(DEFAULT_ACTION_PARAMS), "observed": list(OBSERVED), "condition": list(CONDITION),
-            "prior": _prior_meta(bases, heart_rate), "noise": dict(zip(OBSERVED, map(float, sigma))),
+            "prior": _prior_meta(kinds, heart_rate), "noise": dict(zip(OBSERVED, map(float, sigma))),
             "architecture": dataclasses.asdict(architecture)}
     estimator = Estimator(architecture.build(seed), architecture, arrays, meta)
-    theta, cond = (z - arrays["theta_mean"]) / arrays["theta_sd"], estimator.condition(obs, hr, base)
+    theta, cond = (z - arrays["theta_mean"]) / arrays["theta_sd"], estimator.condition(obs, hr, geometry)
     started = time.perf_counter()
     flow, losses = _fit(estimator.flow, (theta[n_val:], cond[n_val:]), (theta[:n_val], cond[:n_val]), seed=seed, batch_size=batch_size,
                         learning_rate=learning_rate, max_epochs=max_epochs, patience=patience, max_seconds=max_seconds)
@@ -621,7 +735,10 @@ def load(path: str | pathlib.Path = DEFAULT_ARTEFACT) -> Estimator:
     prior = meta.get("prior")
     if not isinstance(prior, dict) or not isinstance(prior.get("bases"), list) or not isinstance(prior.get("heart_rate"), list):
         raise ArchiveError(f"{what} has no valid prior in its metadata")
-    current = _prior_meta(prior["bases"], tuple(prior["heart_rate"])) if all(b in BASES for b in prior["bases"]) else None
+    try:
+        current = _prior_meta(_kinds(prior["bases"]), tuple(prior["heart_rate"]))
+    except (InputError, TypeError, ValueError):
+        current = None
     if current is None or not _json_equal(prior, current):
         raise ArchiveError(f"{what} was trained under the prior {prior}, but this code's is {current}; retrain it (scripts/train_amortised.py)")
     sigma = dict(zip(OBSERVED, map(float, _noise_sd(NOISE))))
@@ -651,23 +768,27 @@ def load(path: str | pathlib.Path = DEFAULT_ARTEFACT) -> Estimator:
 HELD_OUT_TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
 
 
-def held_out_patients(estimator: Estimator, n: int, seed: int, targets: Sequence[str] = HELD_OUT_TARGETS) -> tuple[list[Patient], np.ndarray, int]:
-    """``n`` simulated truths from the prior over ``estimator``'s base hearts and heart-rate range
-    (:func:`simulate`, seed ``seed + 1000``, which training did not use), each a patient whose
-    ``targets`` carry the noise of :data:`optim.identify.NOISE` (``numpy`` seed ``seed``).
-    Returns the patients, their true parameters (m, 6; physical units, columns
-    :data:`DEFAULT_ACTION_PARAMS`) and how many truths were skipped because the noise pushed a
-    target outside its metric's range."""
-
-    draws = simulate(n, bases=estimator.bases, heart_rate=estimator.heart_rate, seed=seed + 1000, batch=128)
+def held_out_patients(estimator: Estimator, n: int, seed: int, targets: Sequence[str] = HELD_OUT_TARGETS,
+                      bases: Sequence[str] | None = None) -> tuple[list[Patient], np.ndarray, int]:
+    """``n`` simulated truths from the prior over ``estimator``'s heart kinds (or the ``bases``
+    given among them) and heart-rate range (:func:`simulate`, seed ``seed + 1000``, which
+    training did not use), each a patient whose ``targets`` carry the noise of
+    :data:`optim.identify.NOISE` (``numpy`` seed ``seed``). Returns the patients, their true
+    parameters (m, 6; physical units, columns :data:`DEFAULT_ACTION_PARAMS`) and how many truths
+    were skipped because the noise pushed a target outside its metric's range."""
+    kinds = estimator.bases if bases is None else _kinds(bases)
+    if stray := sorted(set(kinds) - set(estimator.bases)):
+        raise InputError(f"bases {stray} are not among the estimator's heart kinds {list(estimator.bases)}")
+    draws = simulate(n, bases=kinds, heart_rate=estimator.heart_rate, seed=seed + 1000, batch=128)
     sigma = measurement_sd(dict.fromkeys(OBSERVED, 1.0), NOISE)
     noisy = draws.observations + sigma * np.random.default_rng(seed).standard_normal(draws.observations.shape)
     columns = [OBSERVED.index(k) for k in targets]
     patients, truths = [], []
     for j in range(len(noisy)):
+        kind = KINDS[draws.base[j]]
+        heart = anatomy_heart(Geometry(**dict(zip(GEOMETRY, map(float, draws.geometry[j]))))) if kind == ANATOMY else _base_heart(kind)
         try:
-            patients.append(Patient(f"truth{j}", _base_heart(estimator.bases[draws.base[j]]).replace(HR=float(draws.heart_rate[j])),
-                                    {k: float(noisy[j, c]) for k, c in zip(targets, columns)}))
+            patients.append(Patient(f"truth{j}", heart.replace(HR=float(draws.heart_rate[j])), {k: float(noisy[j, c]) for k, c in zip(targets, columns)}))
         except InputError:  # noise pushed a target outside its metric's range
             continue
         truths.append(draws.parameters[j])

@@ -610,23 +610,32 @@ def posterior_columns() -> list[str]:
 
 @dataclasses.dataclass(frozen=True)
 class PosteriorOptions:
-    """The posterior beside each fit (module docstring): ``n_samples`` draws per row, and with
-    ``refine`` the MCMC posterior (:func:`optim.identify.posterior` with ``mcmc`` as keywords)
-    for the flagged rows."""
+    """The posterior beside each fit (module docstring): ``n_samples`` draws per row, ``importance``
+    flow draws per row reweighted by the exact posterior where > 0 (:func:`optim.identify.amortised`),
+    and with ``refine`` the MCMC posterior (:func:`optim.identify.posterior` with ``mcmc`` as
+    keywords) for the flagged rows."""
 
     n_samples: int = 1000
     refine: bool = False
     seed: int = 0
     mcmc: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    importance: int = 0
 
     def __post_init__(self) -> None:
         integer("n_samples", self.n_samples, 8)
         if not isinstance(self.refine, bool):
             raise InputError(f"refine = {self.refine!r} must be True or False")
         integer("seed", self.seed, 0)
+        if integer("importance", self.importance, 0) and self.importance < self.n_samples:
+            raise InputError(f"importance = {self.importance}: give 0 or at least n_samples = {self.n_samples} proposals per row")
 
     def to_dict(self) -> dict[str, Any]:
-        return {**dataclasses.asdict(self), "mcmc": dict(self.mcmc)}
+        """JSON of the options; ``importance`` only where it is used, so that an output written
+        before the option existed still resumes."""
+        record = {**dataclasses.asdict(self), "mcmc": dict(self.mcmc)}
+        if not self.importance:
+            del record["importance"]
+        return record
 
 
 def _posterior_cells(identified: Any) -> dict[str, str]:
@@ -771,7 +780,7 @@ def run_cohort(
         from optim.identify.sampler import identify_patients
 
         answers = identify_patients([r.patient for r in pending], posterior.n_samples, seed=posterior.seed, refine=posterior.refine,
-                                    mcmc_options=posterior.mcmc, progress=posterior_progress)
+                                    mcmc_options=posterior.mcmc, progress=posterior_progress, importance=posterior.importance)
         identified = {r.id: a for r, a in zip(pending, answers)}
     total = len(parsed.rows)
     count = total - len(pending)

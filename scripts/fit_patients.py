@@ -1,13 +1,15 @@
 """Fit the built-in patients with MADS, CMA-ES, kriging and least squares with autodiff
 Jacobians (lm); print the table (mmHg, ms). Beside the point fits, each patient's amortised
-posterior (optim.amortised: median and 90 % interval per parameter) and, from the two patients'
-independent posterior draws, P(Sa_HF < Sa_N) and P(tau2_HF > tau2_N): what the data say about
+posterior (optim.amortised: median and 90 % interval per parameter; by default its flow draws
+importance-weighted by the exact posterior density, optim.identify.amortised) and, from the two
+patients' independent posterior draws, P(Sa_HF < Sa_N) and P(tau2_HF > tau2_N): what the data say about
 the paper's question, where the four methods' point ratios disagree.
 
     python scripts/fit_patients.py [--budget 480] [--num-envs 16] [--out out/fit]
     python scripts/fit_patients.py --synthetic 10 --method cma     # synthetic recovery
     python scripts/fit_patients.py --fidelity [--fidelity-mesh 6]  # also check each patient's best fit against the 3-D oracle
     python scripts/fit_patients.py --posterior-samples 0            # point fits only
+    python scripts/fit_patients.py --importance 0                   # the flow's own draws, not reweighted
 """
 
 from __future__ import annotations
@@ -71,24 +73,28 @@ def print_fits(rows, plausibility: bool = True) -> None:
                 print(f"  {m:8s} " + "  ".join(f"{n} ×{b.parameters[n] / a.parameters[n]:.2f}" if a.parameters[n] else f"{n} n/a" for n in names))
 
 
-def print_posteriors(patients, n_samples: int, seed: int) -> None:
-    """Each patient's amortised posterior (median [5 %, 95 %]; tau2 in ms) and, for N and HF,
-    P(Sa_HF < Sa_N) and P(tau2_HF > tau2_N) over all pairs of their independent draws
-    (optim.identify.probability_lower)."""
+def print_posteriors(patients, n_samples: int, seed: int, importance: int) -> None:
+    """Each patient's amortised posterior (median [5 %, 95 %]; tau2 in ms), its ``importance`` flow
+    draws reweighted by the exact posterior where > 0, and, for N and HF, P(Sa_HF < Sa_N) and
+    P(tau2_HF > tau2_N) over all pairs of their independent draws (optim.identify.probability_lower)."""
     from optim.identify import identify_patients
     from optim.identify import probability_lower
 
-    answers = {a.patient: a for a in identify_patients([builtin(p) for p in patients], n_samples, seed=seed)}
+    answers = {a.patient: a for a in identify_patients([builtin(p) for p in patients], n_samples, seed=seed, importance=importance)}
     names = list(ACTION_BOUNDS)
     heads = [f"{n} ({'ms' if n == 'tau2' else ACTION_BOUNDS[n].units})" for n in names]
     cells = {p: [f"{_param(n, a.posterior.median[n])} [{_param(n, a.posterior.interval_90[n][0])}, {_param(n, a.posterior.interval_90[n][1])}]"
                  for n in names] if a.posterior is not None else ["—"] * len(names) for p, a in answers.items()}
     widths = [max(len(h), *(len(c[j]) for c in cells.values())) for j, h in enumerate(heads)]
-    print(f"\namortised posterior (optim.amortised, {n_samples} draws each): median [90 % interval]")
+    how = f"{importance} flow draws importance-weighted by the exact posterior, {n_samples} resampled" if importance else f"{n_samples} flow draws"
+    print(f"\namortised posterior (optim.amortised, {how}): median [90 % interval]")
     print("patient        " + " | ".join(f"{h:>{w}s}" for h, w in zip(heads, widths)))
     for p, a in answers.items():
         print(f"{p:14s} " + " | ".join(f"{c:>{w}s}" for c, w in zip(cells[p], widths)))
     for p, a in answers.items():
+        if importance and a.posterior is not None:
+            print(f"{p}: importance weights' effective sample size {next(iter(a.posterior.ess.values())):.0f} of {importance}, "
+                  f"Pareto k {a.posterior.pareto_k:.2f}")
         if a.flag:
             print(f"{p}: FLAGGED, not to be trusted: {a.flag}")
     n, hf = answers.get("normal"), answers.get("heart_failure")
@@ -96,8 +102,8 @@ def print_posteriors(patients, n_samples: int, seed: int) -> None:
         print(f"P(Sa_HF < Sa_N) = {probability_lower(hf.posterior, n.posterior, 'Sa'):.3f}   "
               f"P(tau2_HF > tau2_N) = {probability_lower(n.posterior, hf.posterior, 'tau2'):.3f}   "
               "(independent posteriors of the two patients, over all pairs of draws)")
-        print("the amortised estimator approximates the MCMC posterior; python scripts/compare_amortised.py measures how closely "
-              "(medians in MCMC sd, interval widths), and python scripts/posterior_patients.py gives the MCMC one")
+        print("python scripts/compare_amortised.py measures how closely the flow's draws, and the importance-weighted ones, "
+              "match the MCMC posterior (medians in MCMC sd, interval widths)")
 
 
 def main() -> None:
@@ -118,6 +124,9 @@ def main() -> None:
                     help="drop the filling-pressure bands (mean atrial pressure, EDP) from the objective")
     ap.add_argument("--posterior-samples", type=int, default=4000, metavar="N",
                     help="draws of each patient's amortised posterior (0: none; default %(default)s)")
+    ap.add_argument("--importance", type=int, default=None, metavar="N",
+                    help="flow draws per patient reweighted by the exact posterior (one simulation each; 0: the flow's draws as they are; "
+                         "default: twice --posterior-samples)")
     a = ap.parse_args()
     if a.synthetic:
         rep = synthetic_recovery(a.synthetic, a.method, a.num_envs, a.budget or 1600, a.seed, a.steps_per_beat)
@@ -137,7 +146,7 @@ def main() -> None:
     with contextlib.redirect_stdout(table):
         print_fits(rows, a.plausibility)
         if a.posterior_samples:
-            print_posteriors(a.patients, a.posterior_samples, a.seed)
+            print_posteriors(a.patients, a.posterior_samples, a.seed, a.importance if a.importance is not None else 2 * a.posterior_samples)
     print(table.getvalue(), end="")
     Path(a.out, "fits.txt").write_text(table.getvalue())  # for `lvenv report`
     worst = max(r.mismatch for r in rows)

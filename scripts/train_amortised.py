@@ -1,15 +1,19 @@
 """Train the amortised posterior estimator (optim.amortised) and write its artefact; prints JSON.
 
     python scripts/train_amortised.py [--pairs 1000000] [--sim-seconds 240] [--batch 256] [--chunk 5000] [--draws FILE]
-        [--copies 1] [--train-seconds 150] [--out optim/data/amortised.npz]
+        [--bases normal heart_failure] [--extra-draws FILE ...] [--copies 1] [--train-seconds 150] [--out optim/data/amortised.npz]
 
 Simulates (parameters, observation) pairs from optim.identify.posterior's prior
-(`optim.amortised.simulate`) in chunks of ``--chunk`` pairs, ``--batch`` env members at a time,
-until there are ``--pairs`` or ``--sim-seconds`` have passed (a chunk under way finishes).
-``--draws FILE`` keeps the pairs (`optim.amortised.save_draws`, written after every chunk) and
-resumes from them: a second call adds chunks with new seeds, or only trains if there are
-enough. Chunk k uses seed ``--seed + 1 + k``; the held-out truths of the calibration use seeds
-from 1000 on. Trains the flow (``--train-seconds`` at most, early stopping on the validation loss;
+(`optim.amortised.simulate`, over the heart kinds ``--bases``: base presets, and ``anatomy`` for
+hearts drawn over the anatomy box with the anatomy regression's maps) in chunks of ``--chunk``
+pairs, ``--batch`` env members at a time, until there are ``--pairs`` or ``--sim-seconds`` have
+passed (a chunk under way finishes). ``--draws FILE`` keeps the pairs
+(`optim.amortised.save_draws`, written after every chunk) and resumes from them: a second call
+adds chunks with new seeds, or only trains if there are enough. ``--extra-draws`` adds the pairs
+of other files (their own heart kinds, read only): e.g. preset pairs and anatomy pairs simulated
+apart, by two processes, one per core. Chunk k uses seed ``--seed + 1 + k``; the held-out truths
+of the calibration use seeds from 1000 on, so give two simulations far-apart ``--seed``s.
+``--train-seconds 0`` only simulates. Trains the flow (``--train-seconds`` at most, early stopping on the validation loss;
 each pair ``--copies`` times with fresh noise and masks) and saves the artefact to ``--out``.
 The JSON gives the pairs, uniform draws tried, those left out by reason, the chunks' seconds,
 simulated pairs per second (median over the chunks after the first, which compiles the env),
@@ -22,6 +26,7 @@ import argparse
 import json
 import pathlib
 import statistics
+import sys
 import time
 
 import lvenv  # noqa: F401  (float64, CPU devices)
@@ -39,6 +44,9 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=256, help="env members per simulated batch (default %(default)s)")
     parser.add_argument("--chunk", type=int, default=5000, help="pairs per simulated chunk (default %(default)s)")
     parser.add_argument("--draws", default=None, help="file of simulated pairs: resumed from if it exists, written after every chunk")
+    parser.add_argument("--bases", nargs="+", default=list(amortised.BASES), choices=amortised.KINDS,
+                        help="heart kinds of the simulated pairs (default: %(default)s)")
+    parser.add_argument("--extra-draws", nargs="*", default=[], metavar="FILE", help="more pairs to train on, read only")
     parser.add_argument("--copies", type=int, default=1, help="uses of each pair, with fresh noise and masks (default %(default)s)")
     parser.add_argument("--train-seconds", type=float, default=150.0, help="time budget of the training (s, default %(default)s)")
     parser.add_argument("--batch-size", type=int, default=512, help="training minibatch (default %(default)s)")
@@ -51,8 +59,9 @@ def main() -> None:
     parts: list[PriorSample] = []
     seeds: list[int] = []
     made_by = None
+    bases = tuple(k for k in amortised.KINDS if k in a.bases)
     if a.draws and pathlib.Path(a.draws).exists():
-        loaded, seeds, made_by = amortised.load_draws(a.draws)
+        loaded, seeds, made_by, _ = amortised.load_draws(a.draws, bases=bases)
         parts.append(loaded)
     chunk_seconds: list[float] = []
     started = time.perf_counter()
@@ -61,22 +70,32 @@ def main() -> None:
         if seed >= SEED_LIMIT:
             parser.error(f"chunk seed {seed} would reach the held-out truths' seeds (from {SEED_LIMIT}); use fewer, larger chunks")
         t = time.perf_counter()
-        parts.append(amortised.simulate(min(a.chunk, a.pairs - sum(len(p.parameters) for p in parts)), seed=seed, batch=a.batch))
+        parts.append(amortised.simulate(min(a.chunk, a.pairs - sum(len(p.parameters) for p in parts)), bases=bases, seed=seed, batch=a.batch))
         chunk_seconds.append(time.perf_counter() - t)
         seeds.append(seed)
         if a.draws:
-            amortised.save_draws(PriorSample.concatenate(parts), a.draws, seeds=seeds)
-    draws = PriorSample.concatenate(parts)
+            amortised.save_draws(PriorSample.concatenate(parts), a.draws, seeds=seeds, bases=bases)
+            print(f"{sum(len(p.parameters) for p in parts)} pairs in {a.draws}", file=sys.stderr, flush=True)
     steady = [len(p.parameters) / s for p, s in zip(parts[-len(chunk_seconds):][1:], chunk_seconds[1:])]
-    estimator = amortised.train(draws, seed=a.seed, copies=a.copies, batch_size=a.batch_size, learning_rate=a.learning_rate, max_seconds=a.train_seconds,
+    simulated = {"pairs": sum(len(p.parameters) for p in parts), "chunks": len(seeds), "draws": a.draws, "draws_made_by": made_by,
+                 "chunk_seconds": chunk_seconds, "pairs_per_second": statistics.median(steady) if steady else None}
+    if a.train_seconds <= 0:
+        print(json.dumps(simulated, indent=2))
+        return
+    kinds = set(bases)
+    for path in a.extra_draws:
+        extra, _, _, extra_kinds = amortised.load_draws(path)
+        parts.append(extra)
+        kinds |= set(extra_kinds)
+    bases = tuple(k for k in amortised.KINDS if k in kinds)
+    draws = PriorSample.concatenate(parts)
+    estimator = amortised.train(draws, bases=bases, seed=a.seed, copies=a.copies, batch_size=a.batch_size, learning_rate=a.learning_rate, max_seconds=a.train_seconds,
                                 code_version=a.code_version)
     path = amortised.save(estimator, a.out)
     training = estimator.meta["training"]
     print(json.dumps({
-        "pairs": len(draws.parameters), "tried": draws.tried, "left_out": draws.left_out, "batch": a.batch, "chunks": len(seeds),
-        "draws": a.draws, "draws_made_by": made_by, "chunk_seconds": chunk_seconds,
-        "pairs_per_second": statistics.median(steady) if steady else None,
-        "training_seconds": training["seconds"], "epochs": training["epochs"], "best_validation_loss": training["best_validation_loss"],
+        **simulated, "pairs": len(draws.parameters), "bases": list(bases), "extra_draws": a.extra_draws, "tried": draws.tried,
+        "left_out": draws.left_out, "batch": a.batch, "training_seconds": training["seconds"], "epochs": training["epochs"], "best_validation_loss": training["best_validation_loss"],
         "validation_loss": training["validation_loss"], "artefact": str(path), "code_version": estimator.meta["code_version"],
     }, indent=2))
 

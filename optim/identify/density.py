@@ -36,7 +36,7 @@ from lvenv.validation import InputError, integer, real
 from optim.fit import make_env
 from optim.identify.noise import NOISE, Relative, measurement_sd
 
-__all__ = ["PLAUSIBILITY_SD", "PRIOR_TRIES", "PriorSample", "prior_sample", "prior_draws", "log_density"]
+__all__ = ["PLAUSIBILITY_SD", "PRIOR_TRIES", "ARRAYS", "PriorSample", "prior_sample", "prior_draws", "log_density"]
 
 
 #: Standard deviation (kPa) of the posterior's plausibility factor: 5 mmHg outside a filling band
@@ -102,13 +102,19 @@ def log_density(
 PRIOR_TRIES = 1000
 
 
+#: The per-draw arrays of a :class:`PriorSample`, in field order.
+ARRAYS = ("parameters", "observations", "heart_rate", "base", "geometry")
+
+
 @dataclasses.dataclass(frozen=True)
 class PriorSample:
     """Draws from :func:`~optim.identify.posterior`'s prior with their noise-free observations (:func:`prior_sample`).
 
     ``parameters``: (n, 6), physical units, columns :data:`DEFAULT_ACTION_PARAMS`;
     ``observations``: (n, k) of ``names``, internal units; ``heart_rate``: (n,) 1/min, each draw's
-    heart rate; ``base``: (n,) index of each draw's patient among those given; ``tried``: the
+    heart rate; ``base``: (n,) index of each draw's patient among those given; ``geometry``: (n, 6)
+    the unloaded geometry of each draw's heart (:class:`lvenv.geometry.Geometry` fields, mm and
+    degrees); ``tried``: the
     uniform draws simulated; ``left_out``: how many of them were left out, by reason: a simulation
     status (:mod:`lvenv.status`) for an unusable heart, ``"nonfinite_targets"`` for a usable one
     whose targets are not finite, ``"implausible"`` for one the plausibility factor rejected.
@@ -118,6 +124,7 @@ class PriorSample:
     observations: np.ndarray
     heart_rate: np.ndarray
     base: np.ndarray
+    geometry: np.ndarray
     names: tuple[str, ...]
     tried: int
     left_out: dict[str, int]
@@ -132,7 +139,7 @@ class PriorSample:
         for part in parts:
             for reason, count in part.left_out.items():
                 left_out[reason] = left_out.get(reason, 0) + count
-        arrays = (np.concatenate([getattr(p, f) for p in parts]) for f in ("parameters", "observations", "heart_rate", "base"))
+        arrays = (np.concatenate([getattr(p, f) for p in parts]) for f in ARRAYS)
         return cls(*arrays, parts[0].names, sum(p.tried for p in parts), left_out)
 
 
@@ -210,7 +217,9 @@ def prior_sample(
             tried += batch
     finally:
         venv.close()
-    return PriorSample(np.array(kept["x"][:n]), np.array(kept["obs"][:n]), np.array(kept["hr"][:n]), np.array(kept["base"][:n], int),
+    base = np.array(kept["base"][:n], int)
+    shapes = np.array([[getattr(p.heart.geometry, f.name) for f in dataclasses.fields(p.heart.geometry)] for p in patients], float)
+    return PriorSample(np.array(kept["x"][:n]), np.array(kept["obs"][:n]), np.array(kept["hr"][:n]), base, shapes[base].reshape(len(base), -1),
                        names, tried, left_out)
 
 

@@ -43,7 +43,10 @@ patients' posteriors.
 
 :func:`amortised`: the posterior of any number of patients from the trained flow of
 :mod:`optim.amortised` (same prior, noise and observation model), one batched pass, with an
-out-of-distribution flag; :func:`~optim.identify.prior_sample` draws its training pairs.
+out-of-distribution flag; :func:`~optim.identify.prior_sample` draws its training pairs. With
+``importance`` the flow's draws are a proposal, reweighted by this module's exact posterior
+density (one simulation each, Pareto-smoothed importance sampling) and resampled, with the
+weights' Pareto k̂ as the flag.
 :func:`identify_patients` (the CLI's and the cohort's ``--posterior amortised``) does that for
 a list of patients and runs :func:`posterior` for those flagged, with ``refine``.
 """
@@ -62,11 +65,11 @@ from lvenv.plausibility import Band
 from lvenv.plausibility import resolve as resolve_bands
 from lvenv.validation import InputError, integer, real
 from optim.fit import make_env
-from optim.identify.density import PLAUSIBILITY_SD, _log_posterior
+from optim.identify.density import PLAUSIBILITY_SD, _log_posterior, log_density
 from optim.identify.noise import NOISE, Relative, measurement_sd
 from optim.nuts import LogDensity, run_nuts
 
-__all__ = ["Posterior", "SAMPLERS", "CLIMB", "PILOT_EXTENSIONS", "posterior", "amortised", "probability_lower", "Identified", "identify_patients"]
+__all__ = ["Posterior", "SAMPLERS", "CLIMB", "PILOT_EXTENSIONS", "PARETO_K", "IMPORTANCE_BATCH", "posterior", "amortised", "probability_lower", "Identified", "identify_patients"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,7 +79,8 @@ class Posterior:
     ``pilot_steps``: the pilot's steps, more than ``steps`` where it was extended (:data:`CLIMB`).
     From :func:`amortised` (``sampler="amortised"``) the samples are independent draws of the
     flow: no acceptance (NaN), autocorrelation time 1, ESS the number of samples, and the split
-    R-hat of four consecutive blocks of them."""
+    R-hat of four consecutive blocks of them; importance-weighted (``sampler="importance"``), ESS
+    is the weights' effective sample size and ``pareto_k`` their Pareto k̂."""
 
     samples: dict[str, np.ndarray]
     median: dict[str, float]
@@ -91,6 +95,7 @@ class Posterior:
     sampler: str = "ensemble"
     divergent: int = 0  # NUTS transitions that diverged (0 for the ensemble)
     out_of_distribution: str = ""  # amortised posteriors: why the observation is outside the training set ("" if inside)
+    pareto_k: float = float("nan")  # importance-weighted amortised posteriors: the weights' Pareto k̂ (NaN otherwise)
 
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if k != "samples"}
@@ -359,12 +364,20 @@ def posterior(
     )
 
 
+#: Largest Pareto k̂ of trustworthy importance weights (Vehtari A et al., JMLR 25:72, 2024: the
+#: smoothed estimate is reliable for k̂ < min(1 − 1/log10 S, 0.7) with S draws).
+PARETO_K = 0.7
+#: Members of the env that simulates the importance proposals (:func:`amortised`).
+IMPORTANCE_BATCH = 500
+
+
 def amortised(
     patients: Patient | Sequence[Patient],
     n_samples: int = 1000,
     *,
     seed: int = 0,
     estimator: Any = None,
+    importance: int = 0,
 ) -> list[Posterior]:
     """The amortised posterior of each patient (:mod:`optim.amortised`): ``n_samples`` draws of
     the trained flow given its targets (any subset of :data:`optim.amortised.OBSERVED`, internal
@@ -373,25 +386,53 @@ def amortised(
     observation lies outside the training set (:meth:`optim.amortised.Estimator.out_of_distribution`),
     and its samples are then not to be trusted. ``estimator``: an
     :class:`optim.amortised.Estimator` or an artefact path (default: the shipped artefact).
-    :class:`InputError` for a target the estimator does not take or a heart that is none of its
-    base presets (up to the six parameters and the heart rate)."""
+    :class:`InputError` for a target the estimator does not take or a heart it does not cover
+    (:func:`optim.amortised.covered_geometry`: its base presets, and with the anatomy kind any
+    geometry in the anatomy box with the regression's maps, up to the six parameters and the
+    heart rate).
+
+    ``importance`` > 0: the flow is a proposal, not the answer (``sampler="importance"``). It
+    draws ``importance`` parameter sets per patient, each heart is simulated once
+    (:func:`optim.identify.log_density`, :data:`IMPORTANCE_BATCH` at a time: about 1–2 s per
+    patient for 2,000), and each draw is weighted by the posterior's density over the flow's
+    (:meth:`optim.amortised.Estimator.log_density`), Pareto-smoothed (PSIS, Vehtari et al. 2024,
+    ``arviz_stats``); ``n_samples`` are resampled from them (systematic resampling). So the
+    samples follow the same posterior as :func:`posterior`'s MCMC, up to the weights' Monte-Carlo
+    error, whatever the flow's own error. ``ess`` is the weights' effective sample size,
+    ``evaluations`` and ``failed`` count the simulations, and ``pareto_k`` is k̂: above
+    :data:`PARETO_K` the weights are unreliable (the flow misses part of the posterior), and the
+    patient is flagged through ``out_of_distribution``."""
     from optim import amortised as amortised_module
 
     patients = [patients] if isinstance(patients, Patient) else list(patients)
     if not patients or not all(isinstance(p, Patient) for p in patients):
         raise InputError(f"patients must be a Patient or a non-empty list of them, got {patients!r}")
     n_samples, seed = integer("n_samples", n_samples, 8), integer("seed", seed, 0)
+    importance = integer("importance", importance, 0)
+    if 0 < importance < n_samples:
+        raise InputError(f"importance = {importance}: give 0 (no reweighting) or at least n_samples = {n_samples} proposals per patient")
     if not isinstance(estimator, amortised_module.Estimator):
         estimator = amortised_module.load(amortised_module.DEFAULT_ARTEFACT if estimator is None else estimator)
     obs = np.stack([amortised_module.observations(p) for p in patients])
     heart_rate = np.array([float(p.heart.get("HR")) for p in patients])
-    base = np.array([amortised_module.base_index(p.heart, estimator.bases) for p in patients])
+    geometry = np.stack([amortised_module.covered_geometry(p.heart, estimator.bases) for p in patients])
     reasons = estimator.out_of_distribution(obs, heart_rate)
-    draws = estimator.sample(obs, heart_rate, base, n_samples, seed)
+    draws = estimator.sample(obs, heart_rate, geometry, importance or n_samples, seed)
     names = DEFAULT_ACTION_PARAMS
     out = []
-    for x, reason in zip(draws, reasons):
-        samples = {n: x[:, j] for j, n in enumerate(names)}
+    for j, (x, reason) in enumerate(zip(draws, reasons)):
+        ess, evaluations, failed, pareto_k = float(n_samples), 0, 0, float("nan")
+        if importance:
+            log_q = estimator.log_density(x, np.repeat(obs[j: j + 1], len(x), axis=0), np.full(len(x), heart_rate[j]),
+                                          np.repeat(geometry[j: j + 1], len(x), axis=0))
+            log_p = log_density(patients[j], x, batch=min(importance, IMPORTANCE_BATCH))
+            x, ess, pareto_k = _importance_resample(x, log_p - log_q, n_samples, np.random.default_rng([seed, j]))
+            evaluations, failed = len(log_p), int(np.sum(~np.isfinite(log_p)))
+            limit = min(1.0 - 1.0 / np.log10(importance), PARETO_K)
+            if not pareto_k < limit:
+                text = f"importance weights unreliable (Pareto k {pareto_k:.2f}, above {limit:.2f}): the flow misses part of this posterior"
+                reason = "; ".join(filter(None, [reason, text]))
+        samples = {n: x[:, k] for k, n in enumerate(names)}
         blocks = x[: n_samples // 4 * 4].reshape(4, -1, len(names))
         out.append(Posterior(
             samples=samples,
@@ -399,15 +440,33 @@ def amortised(
             interval_90={n: (float(np.percentile(v, 5)), float(np.percentile(v, 95))) for n, v in samples.items()},
             acceptance=float("nan"),
             autocorr_time=dict.fromkeys(names, 1.0),
-            ess=dict.fromkeys(names, float(n_samples)),
-            rhat={n: _split_rhat(blocks[..., j]) for j, n in enumerate(names)},
-            evaluations=0,
-            failed=0,
+            ess=dict.fromkeys(names, ess),
+            rhat={n: _split_rhat(blocks[..., k]) for k, n in enumerate(names)},
+            evaluations=evaluations,
+            failed=failed,
             pilot_steps=0,
-            sampler="amortised",
+            sampler="importance" if importance else "amortised",
             out_of_distribution=reason,
+            pareto_k=pareto_k,
         ))
     return out
+
+
+def _importance_resample(x: np.ndarray, log_w: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
+    """``n`` rows of ``x`` resampled by their log importance weights ``log_w`` (−inf: weight 0),
+    Pareto-smoothed (``arviz_stats``' PSIS, which takes the negated log weights), systematically
+    and in random order; with the weights' effective sample size and Pareto k̂. No usable row:
+    ``x``'s first ``n`` rows as they are, ESS 0 and k̂ inf."""
+    from arviz_stats.base import array_stats
+
+    usable = np.flatnonzero(np.isfinite(log_w))
+    if len(usable) < 2:
+        return x[:n], 0.0, float("inf")
+    smoothed, pareto_k = array_stats.psislw(-log_w[usable])
+    w = np.exp(smoothed - np.max(smoothed))
+    w /= w.sum()
+    picks = np.searchsorted(np.cumsum(w), (rng.random() + np.arange(n)) / n, side="right").clip(max=len(w) - 1)
+    return x[usable[rng.permutation(picks)]], float(1.0 / np.sum(w ** 2)), float(pareto_k)
 
 
 def probability_lower(a: Posterior, b: Posterior, name: str) -> float:
@@ -442,9 +501,10 @@ def identify_patients(
     refine: bool = False,
     mcmc_options: Mapping[str, Any] | None = None,
     progress: Any = None,
+    importance: int = 0,
 ) -> list[Identified]:
     """The amortised posterior of every patient (:func:`amortised`, one batched
-    pass), and with ``refine`` the MCMC posterior (:func:`optim.identify.posterior`, keywords
+    pass; ``importance`` proposals per patient reweighted by the exact posterior where > 0), and with ``refine`` the MCMC posterior (:func:`optim.identify.posterior`, keywords
     ``mcmc_options``) of each flagged one instead. ``estimator``: as :func:`amortised` takes it.
 
     A patient the estimator does not cover (a target it does not condition on, such as EDV, or a
@@ -454,7 +514,7 @@ def identify_patients(
     ball around it), else from the patient's own values. ``progress(done, total, name)`` is
     called before each MCMC run (about 100 s each on 2 cores). One :class:`Identified` per
     patient, in order."""
-    from optim.amortised import DEFAULT_ARTEFACT, Estimator, base_index, load, observations
+    from optim.amortised import DEFAULT_ARTEFACT, Estimator, covered_geometry, load, observations
 
     patients = list(patients)
     if not isinstance(estimator, Estimator):
@@ -463,13 +523,13 @@ def identify_patients(
     for j, p in enumerate(patients):
         try:
             observations(p)
-            base_index(p.heart, estimator.bases)
+            covered_geometry(p.heart, estimator.bases)
             covered.append(j)
         except InputError as err:
             flags[j] = f"not covered by the amortised estimator: {err}"
     posteriors: list[Any] = [None] * len(patients)
     if covered:
-        for j, post in zip(covered, amortised([patients[j] for j in covered], n_samples, seed=seed, estimator=estimator)):
+        for j, post in zip(covered, amortised([patients[j] for j in covered], n_samples, seed=seed, estimator=estimator, importance=importance)):
             posteriors[j], flags[j] = post, post.out_of_distribution
     refined = [False] * len(patients)
     if refine:

@@ -41,7 +41,7 @@ def test_help_of_every_command_works(argv, capsys):
         (["fit", "normal", "--map-draws", "4"], "the maps of 'normal' do not come from the anatomy regression"),
         (["fit", "normal", "--map-draws", "1"], "--map-draws needs at least 2 draws"),
         (["cohort", "r.csv", "--out", "o.csv", "--maps", "gp"], "'gp' is not one of"),
-        (["fit", "normal", "--posterior", "mcmc"], "'mcmc' is not 'amortised'"),
+        (["fit", "normal", "--posterior", "mcmc"], "'mcmc' is not one of 'amortised', 'importance'"),
     ],
 )
 def test_usage_errors_exit_2_and_name_the_problem(argv, message, capsys):
@@ -97,7 +97,7 @@ def test_long_commands_show_progress_on_a_terminal(monkeypatch, capsys):
 def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_fit(tmp_path, capsys):
     plot, convergence = tmp_path / "fit.png", tmp_path / "convergence.pdf"
     argv = ["fit", "normal", "--method", "cma", "--budget", "16", "--num-envs", "8", "--steps-per-beat", "250", "--plot", str(plot),
-            "--convergence", str(convergence), "--identifiability", "--posterior", "amortised", "--samples", "200", "--json"]
+            "--convergence", str(convergence), "--identifiability", "--posterior", "importance", "--samples", "200", "--json"]
     assert cli.main(argv) == cli.EXIT_OK
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and convergence.read_bytes()[:5] == b"%PDF-"
     payload = json.loads(capsys.readouterr().out)
@@ -112,7 +112,8 @@ def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_f
     ident = payload["identifiability"]
     assert len(ident["singular_values"]) == 4 and len(ident["null_directions"]) == 2, "4 targets, 6 parameters"
     post = payload["posterior"]
-    assert post["sampler"] == "amortised" and not post["refined"] and not post["out_of_distribution"] and post["reason"] == ""
+    assert post["sampler"] == "importance" and not post["refined"] and not post["out_of_distribution"] and post["reason"] == ""
+    assert 0 < post["ess"] <= 400 and post["pareto_k"] < 0.7, "400 proposals (2 per draw), reliable weights for the built-in patient"
     for name, median in post["median"].items():
         lo, hi = post["interval_90"][name]
         assert ACTION_BOUNDS[name].lo <= lo < median < hi <= ACTION_BOUNDS[name].hi, name

@@ -3,6 +3,8 @@ on a small real simulated set, its loose calibration on held-out truths, the art
 trip and errors, and the out-of-distribution flag."""
 
 import dataclasses
+import pathlib
+import tempfile
 
 import numpy as np
 import pytest
@@ -16,6 +18,7 @@ from lvenv.status import STATUS
 from lvenv.validation import InputError
 from optim import amortised
 from optim.identify import NOISE, Posterior, PriorSample, amortised as amortised_posteriors, identify_patients, measurement_sd
+from optim.identify.density import ARRAYS
 
 TRAIN, HELD_OUT = 240, 100
 TINY = amortised.Architecture(flow_layers=3, knots=6, nn_width=32, nn_depth=1)
@@ -24,7 +27,7 @@ TINY = amortised.Architecture(flow_layers=3, knots=6, nn_width=32, nn_depth=1)
 @pytest.fixture(scope="module")
 def data():
     draws = amortised.simulate(TRAIN + HELD_OUT, seed=11, batch=128)
-    split = lambda s: PriorSample(*(getattr(draws, f)[s] for f in ("parameters", "observations", "heart_rate", "base")), draws.names,
+    split = lambda s: PriorSample(*(getattr(draws, f)[s] for f in ARRAYS), draws.names,
                                   draws.tried, draws.left_out)
     estimator = amortised.train(split(slice(0, TRAIN)), architecture=TINY, copies=4, batch_size=128, max_epochs=150, patience=10, seed=0)
     return draws, split(slice(TRAIN, None)), estimator
@@ -66,7 +69,7 @@ def test_tiny_estimator_is_loosely_calibrated_on_held_out_truths(data):
     obs = held.observations + sigma * rng.standard_normal(held.observations.shape)
     obs[rng.random(obs.shape) < 0.3] = np.nan
     obs[np.all(np.isnan(obs), axis=1), 0] = held.observations[np.all(np.isnan(obs), axis=1), 0]
-    x = estimator.sample(obs, held.heart_rate, held.base, 400, seed=1)
+    x = estimator.sample(obs, held.heart_rate, held.geometry, 400, seed=1)
     lo, hi = np.percentile(x, 5, axis=1), np.percentile(x, 95, axis=1)
     coverage = np.mean((held.parameters >= lo) & (held.parameters <= hi), axis=0)
     assert np.all(coverage >= 0.7) and 0.8 <= coverage.mean() <= 0.98, coverage
@@ -79,7 +82,7 @@ def test_artefact_round_trips_and_bad_artefacts_say_what_is_wrong(data, tmp_path
     _, held, estimator = data
     path = amortised.save(estimator, tmp_path / "est.npz")
     loaded = amortised.load(path)
-    args = (held.observations[:5], held.heart_rate[:5], held.base[:5], 50)
+    args = (held.observations[:5], held.heart_rate[:5], held.geometry[:5], 50)
     np.testing.assert_allclose(loaded.sample(*args, seed=2), estimator.sample(*args, seed=2), rtol=1e-12)
     assert loaded.meta == {**estimator.meta}
 
@@ -109,16 +112,22 @@ def test_training_pairs_file_round_trips_concatenates_and_refuses_other_priors(d
     concatenate in order with their counts summed, read back bit for bit, and a file of another
     prior or of other shapes is refused with what differs."""
     draws, held, _ = data
-    first = PriorSample(*(getattr(draws, f)[:50] for f in ("parameters", "observations", "heart_rate", "base")), draws.names, 300, {"implausible": 200})
+    first = PriorSample(*(getattr(draws, f)[:50] for f in ARRAYS), draws.names, 300, {"implausible": 200})
     both = PriorSample.concatenate([first, held])
     assert len(both.parameters) == 50 + HELD_OUT and both.tried == 300 + held.tried
     assert both.left_out["implausible"] == 200 + held.left_out["implausible"]
     np.testing.assert_array_equal(both.parameters[50:], held.parameters)
     path = amortised.save_draws(both, tmp_path / "draws.npz", seeds=[1, 2])
-    back, seeds, code_version = amortised.load_draws(path)
+    back, seeds, code_version, kinds = amortised.load_draws(path)
     assert seeds == [1, 2] and code_version and back.names == both.names and (back.tried, back.left_out) == (both.tried, both.left_out)
-    for f in ("parameters", "observations", "heart_rate", "base"):
+    assert kinds == amortised.BASES
+    for f in ARRAYS:
         np.testing.assert_array_equal(getattr(back, f), getattr(both, f))
+    arrays, meta = archive.load(path)
+    archive.save(tmp_path / "old.npz", {k: v for k, v in arrays.items() if k != "geometry"}, meta)
+    np.testing.assert_array_equal(amortised.load_draws(tmp_path / "old.npz")[0].geometry, both.geometry), "a file from before geometry: from its presets"
+    with pytest.raises(ArchiveError, match="prior"):
+        amortised.load_draws(path, bases=("normal", "heart_failure", "anatomy"))
     with pytest.raises(ArchiveError, match="prior"):
         amortised.load_draws(path, heart_rate=(50.0, 100.0))
     arrays, meta = archive.load(path)
@@ -163,7 +172,7 @@ def test_identify_amortised_returns_one_posterior_per_patient(data):
     assert [p.out_of_distribution == "" for p in both] == [True, False] and "heart rate" in both[1].out_of_distribution
     with pytest.raises(InputError, match="does not condition on"):
         amortised_posteriors(dataclasses.replace(normal, targets={"EF": 0.6, "EDV": 120.0}), estimator=estimator)
-    with pytest.raises(InputError, match="base presets"):
+    with pytest.raises(InputError, match="none of the estimator's hearts"):
         amortised_posteriors(Patient("other", normal.heart.replace(Pat=1.2), {"EF": 0.6}), estimator=estimator)
 
 
@@ -184,10 +193,10 @@ def test_batched_draw_is_the_flows_own_inverse_and_compiles_once(data, which):
     reference = np.asarray(jax.vmap(lambda e, c: jax.vmap(lambda x: flow.bijection.transform(x, c))(e))(eps, cond))
     for dtype, tolerance in ((jnp.float64, 1e-10), (jnp.float32, 1e-4)):
         np.testing.assert_allclose(np.asarray(amortised._coupling_inverse(estimator.flow, dtype)(eps, cond)), reference, atol=tolerance)
-    obs, hr, base = np.tile([[0.6, 0.3, 0.08, 10.0, 12.5, 6.0]], (3, 1)), np.full(3, 60.0), np.zeros(3, int)
-    first = estimator.sample(obs, hr, base, 64, seed=1)
+    obs, hr, shape = np.tile([[0.6, 0.3, 0.08, 10.0, 12.5, 6.0]], (3, 1)), np.full(3, 60.0), np.tile(amortised.covered_geometry(builtin("normal").heart, amortised.BASES), (3, 1))
+    first = estimator.sample(obs, hr, shape, 64, seed=1)
     compiled = estimator._sampler._cache_size()
-    second = estimator.sample(obs[:2], hr[:2], base[:2], 64, seed=2)  # padded to the same block: no new compilation
+    second = estimator.sample(obs[:2], hr[:2], shape[:2], 64, seed=2)  # padded to the same block: no new compilation
     assert first.shape == (3, 64, 6) and second.shape == (2, 64, 6) and first.dtype == np.float64 and not np.array_equal(first[:2], second)
     assert estimator._sampler._cache_size() == compiled
 
@@ -218,3 +227,126 @@ def test_shipped_artefact_answers_the_built_in_patients():
     normal, failure = amortised_posteriors([builtin("normal"), builtin("heart_failure")], n_samples=2000, estimator=estimator)
     assert normal.out_of_distribution == failure.out_of_distribution == ""
     assert np.median(failure.samples["Sa"]) < np.median(normal.samples["Sa"]) * 1.5
+
+
+def test_importance_resampling_recovers_a_known_target_and_flags_heavy_tails():
+    """_importance_resample: draws of N(0, 1) weighted towards N(0.5, 0.7²) resample to that
+    target (mean and sd within Monte-Carlo tolerance), never pick an unusable (−inf) row, and have
+    Pareto k̂ below 0.7; weighted towards a target wider than the proposal (N(0, 3²): weights of
+    infinite variance) k̂ exceeds 0.7, which is what flags an unreliable importance posterior."""
+    from optim.identify.sampler import PARETO_K, _importance_resample
+
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((20_000, 2))
+    log_normal = lambda v, mu, sd: np.sum(-0.5 * ((v - mu) / sd) ** 2 - np.log(sd), axis=1)
+    log_w = log_normal(x, 0.5, 0.7) - log_normal(x, 0.0, 1.0)
+    x[:50], log_w[:50] = 99.0, -np.inf
+    picked, ess, k = _importance_resample(x, log_w, 5000, np.random.default_rng(4))
+    assert picked.shape == (5000, 2) and not np.any(picked == 99.0)
+    np.testing.assert_allclose(picked.mean(axis=0), 0.5, atol=0.05)
+    np.testing.assert_allclose(picked.std(axis=0), 0.7, atol=0.05)
+    assert 0.3 * len(x) < ess < len(x) and k < PARETO_K
+    wide = log_normal(x[50:], 0.0, 3.0) - log_normal(x[50:], 0.0, 1.0)
+    assert _importance_resample(x[50:], wide, 1000, np.random.default_rng(4))[2] > PARETO_K
+
+
+def test_flow_density_in_the_unit_cube_is_the_sampling_maps_change_of_variables(data):
+    """Estimator.log_density(u) = log p_base(ε) − log |det ∂u/∂ε| for u the sampler's image of
+    base draws ε (flowjax's forward map, then the standardisation and the logistic map into the
+    unit cube), the Jacobian by automatic differentiation of that whole map: no term of the
+    change of variables (the flow's, the standard deviations', the logit's) is missing."""
+    import jax
+    import jax.numpy as jnp
+    import paramax
+
+    from lvenv.identification import ParameterSpace
+
+    estimator = data[2]
+    flow = paramax.unwrap(estimator.flow)
+    obs, hr, shape = np.array([0.6, 0.3, 0.08, 10.0, 12.5, 6.0]), 70.0, amortised.covered_geometry(builtin("heart_failure").heart, amortised.BASES)
+    cond = jnp.asarray(estimator.condition(obs[None], np.array([hr]), shape[None])[0])
+    mean, sd = (jnp.asarray(estimator.arrays[k]) for k in ("theta_mean", "theta_sd"))
+    to_unit = lambda e: jax.nn.sigmoid(flow.bijection.transform(e, cond) * sd + mean)
+    base_dist = flow.base_dist  # trained: its loc and scale are not 0 and 1
+    eps = np.asarray(base_dist.loc) + np.asarray(base_dist.scale) * np.random.default_rng(6).standard_normal((5, 6))
+    u = np.asarray(jax.vmap(to_unit)(eps))
+    expected = [float(base_dist.log_prob(jnp.asarray(e)) - jnp.linalg.slogdet(jax.jacfwd(to_unit)(jnp.asarray(e)))[1]) for e in eps]
+    x = ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).from_unit(u)
+    got = estimator.log_density(x, np.tile(obs, (5, 1)), np.full(5, hr), np.tile(shape, (5, 1)))
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+def test_importance_weighting_flags_a_poor_flow_and_trusts_the_shipped_one(data):
+    """amortised(importance=N): resampled draws of N simulated proposals (sampler 'importance',
+    N evaluations). The tiny test estimator is far from the posterior: its weights' Pareto k̂ is
+    above the limit and the patient is flagged with the reason. The shipped estimator's weights
+    are reliable for the built-in patient (k̂ below the limit, ESS over a fifth of the
+    proposals), so it is not flagged. Fewer proposals than draws is refused."""
+    from optim.identify.sampler import PARETO_K
+
+    normal = builtin("normal")
+    poor, = amortised_posteriors(normal, n_samples=400, estimator=data[2], importance=800, seed=1)
+    assert poor.sampler == "importance" and poor.evaluations == 800 and poor.failed < 800
+    assert poor.pareto_k > PARETO_K and "Pareto k" in poor.out_of_distribution and poor.ess["Sa"] < 800
+    shipped, = amortised_posteriors(normal, n_samples=1000, importance=2000, seed=1)
+    assert shipped.pareto_k < PARETO_K and shipped.ess["tau2"] > 400 and shipped.out_of_distribution == ""
+    assert all(len(v) == 1000 for v in shipped.samples.values()) and np.isnan(amortised_posteriors(normal, 100, estimator=data[2])[0].pareto_k)
+    with pytest.raises(InputError, match="importance = 50"):
+        amortised_posteriors(normal, n_samples=100, estimator=data[2], importance=50)
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    """Pairs over every heart kind (presets and anatomies) and a tiny estimator trained on them."""
+    draws = amortised.simulate(90, bases=amortised.KINDS, seed=5, batch=64)
+    return draws, amortised.train(draws, bases=amortised.KINDS, architecture=TINY, batch_size=32, max_epochs=3, seed=0)
+
+
+def test_anatomy_pairs_carry_the_geometry_of_the_heart_that_made_them(mixed):
+    """simulate over the presets and the anatomy kind: equal shares, each pair's kind index
+    (optim.amortised.KINDS) and geometry; anatomies inside the box, several pairs each; a pair's
+    noise-free observation is what its own heart (anatomy_heart of its geometry, its parameters
+    and heart rate) gives when simulated again."""
+    from optim.campaign import BOX
+    from optim.identify.density import _evaluate
+    from optim.fit import make_env
+
+    draws, _ = mixed
+    kinds = np.bincount(draws.base, minlength=3)
+    assert list(kinds) == [60 - kinds[1], kinds[1], 30] and kinds[0] > 0 and kinds[1] > 0
+    anat = draws.base == amortised.KINDS.index(amortised.ANATOMY)
+    lo, hi = np.array([BOX[g][0] for g in amortised.GEOMETRY]), np.array([BOX[g][1] for g in amortised.GEOMETRY])
+    assert np.all((draws.geometry[anat] >= lo) & (draws.geometry[anat] <= hi))
+    assert 1 < len(np.unique(draws.geometry[anat], axis=0)) <= 30
+    presets = [amortised.covered_geometry(builtin(n).heart, amortised.BASES) for n in ("normal", "heart_failure")]
+    assert all(np.array_equal(draws.geometry[j], presets[draws.base[j]]) for j in np.flatnonzero(~anat))
+    j = int(np.flatnonzero(anat)[0])
+    from lvenv.geometry import Geometry
+
+    heart = amortised.anatomy_heart(Geometry(**dict(zip(amortised.GEOMETRY, map(float, draws.geometry[j]))))).replace(HR=float(draws.heart_rate[j]))
+    venv = make_env(Patient("again", heart, amortised._TARGETS), 4, 500, 60)
+    venv.reset(seed=0)
+    obs = _evaluate(venv, draws.parameters[j:j + 1], amortised.OBSERVED, [])[0][0]
+    venv.close()
+    np.testing.assert_allclose(obs, draws.observations[j], rtol=1e-6)
+
+
+def test_an_anatomy_estimator_covers_regression_mapped_hearts_in_the_box_only(mixed):
+    """covered_geometry: a patient record with a geometry and the regression's maps is covered by
+    an estimator with the anatomy kind (its own geometry enters the condition) and not by one of
+    the presets only; a geometry outside the box names the field, and other maps are refused.
+    The artefact records the anatomy regression's dataset and round-trips."""
+    _, estimator = mixed
+    shape = {"Rb": 33.0, "L": 9.0, "Z": 50.0, "H": 9.0, "e": 0.7, "C0": -60.0}
+    record = Patient.from_dict({"name": "imaged", "geometry": shape, "lo": "regression", "targets": {"EF": 0.55, "ET": 0.3}})
+    np.testing.assert_array_equal(amortised.covered_geometry(record.heart.replace(tau2=0.3, HR=80.0), amortised.KINDS), [shape[g] for g in amortised.GEOMETRY])
+    with pytest.raises(InputError, match="none of the estimator's hearts"):
+        amortised.covered_geometry(record.heart, amortised.BASES)
+    with pytest.raises(InputError, match="Rb = 60 outside"):
+        amortised.covered_geometry(record.heart.replace(geometry=dataclasses.replace(record.heart.geometry, Rb=60.0)), amortised.KINDS)
+    with pytest.raises(InputError, match="none of the estimator's hearts"):
+        amortised.covered_geometry(record.heart.replace(mu1=record.heart.get("mu1") * 1.1), amortised.KINDS)
+    post, = amortised_posteriors(record, n_samples=64, estimator=estimator)
+    assert post.sampler == "amortised" and all(len(v) == 64 for v in post.samples.values())
+    assert estimator.meta["prior"]["anatomy"]["regression"]["dataset_sha256"]
+    assert amortised.load(amortised.save(estimator, pathlib.Path(tempfile.mkdtemp()) / "a.npz")).bases == amortised.KINDS
