@@ -23,7 +23,8 @@ inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make
                    ``posterior_pairs.png``;
                    ``out/cohort/*.csv`` with its ``.json``                ``lvenv cohort REPORTS --out out/cohort/…``
 calibration        ``out/identify/calibration.json``;                     ``python scripts/calibration.py``;
-                   ``out/bench/amortised.json``                           ``lvenv bench amortised``
+                   ``out/bench/amortised.json``;                          ``lvenv bench amortised``;
+                   ``out/compare/compare.json``                           ``python scripts/compare_amortised.py``
 benchmarks         ``out/bench/*.json``                                   ``lvenv bench NAME``
 anatomy            ``out/anatomy/anatomy.md`` and its figures             ``python scripts/anatomy_study.py``
 =================  =====================================================  ===============================================
@@ -204,14 +205,45 @@ def _calibration(root: Path, level: int) -> list[str]:
     lines += ["#" * level + " Amortised posterior (`optim.identify.amortised`)", ""]
     path = root / "bench" / "amortised.json"
     if not path.exists():
-        return lines + _missing("lvenv bench amortised")
+        lines += _missing("lvenv bench amortised")
+    else:
+        result = json.loads(path.read_text())
+        kinds = f" over the heart kinds {', '.join(result['bases'])}" if "bases" in result else ""
+        lines += [f"Command: `lvenv bench amortised`; results of {_stamp(path)}.", "",
+                  f"On {result['truths']} held-out truths from the prior{kinds}: the fraction inside their 90 % interval, and the "
+                  "Kolmogorov–Smirnov p-value of the truths' ranks among the samples against uniform (simulation-based calibration, "
+                  f"Talts S et al., arXiv:1804.06788, 2018); {100 * result['out_of_distribution']:.1f} % flagged out of distribution.", ""]
+        lines += _per_parameter({"90 % coverage": {n: f"{c:.2f}" for n, c in result["coverage_90"].items()},
+                                 "rank KS p": {n: f"{p:.3g}" for n, p in result["rank_ks_p"].items()}})
+    return lines + _against_mcmc(root / "compare" / "compare.json", level)
+
+
+def _against_mcmc(path: Path, level: int) -> list[str]:
+    """The amortised posteriors, the flow's draws and the importance-weighted ones, beside the
+    MCMC posterior of the same patients (``scripts/compare_amortised.py``)."""
+    lines = ["#" * level + " Amortised against MCMC", ""]
+    if not path.exists():
+        return lines + _missing("python scripts/compare_amortised.py --out out/compare")
     result = json.loads(path.read_text())
-    lines += [f"Command: `lvenv bench amortised`; results of {_stamp(path)}.", "",
-              f"On {result['truths']} held-out truths from the prior: the fraction inside their 90 % interval, and the "
-              "Kolmogorov–Smirnov p-value of the truths' ranks among the samples against uniform (simulation-based calibration, "
-              f"Talts S et al., arXiv:1804.06788, 2018); {100 * result['out_of_distribution']:.1f} % flagged out of distribution.", ""]
-    return lines + _per_parameter({"90 % coverage": {n: f"{c:.2f}" for n, c in result["coverage_90"].items()},
-                                   "rank KS p": {n: f"{p:.3g}" for n, p in result["rank_ks_p"].items()}})
+    methods = [m for m in ("amortised", "importance") if m in result]
+    lines += [f"Command: `{result.get('command', 'python scripts/compare_amortised.py')}`; results of {_stamp(path)}.", "",
+              f"{result['patients']} patients (the built-in ones and {result['truths']} held-out truths), {result['samples']} draws each; "
+              f"MCMC {result['mcmc_seconds_per_patient']:.0f} s per patient (largest split R-hat {result['mcmc_rhat_max']:.3f}). "
+              "Per parameter, over the patients: the largest |median − MCMC median| in MCMC posterior sd (acceptance ≤ 0.3) and the "
+              "range of the 90 % interval's width over MCMC's (acceptance 0.75–1.25), in the unit-cube coordinate of the parameter's "
+              "bound. *amortised*: the flow's draws; *importance*: "
+              f"{result.get('importance_draws', 0)} flow draws per patient reweighted by the exact posterior.", ""]
+    rows = {}
+    for m in methods:
+        rows[f"{m}: median shift (sd)"] = {n: f"{v:.2f}" for n, v in result[m]["worst_median_shift_sd"].items()}
+        rows[f"{m}: width ratio"] = {n: f"{lo:.2f}–{hi:.2f}" for n, (lo, hi) in result[m]["width_ratio_range"].items()}
+    lines += _per_parameter(rows)
+    for m in methods:
+        within = result[m]["within_acceptance"]
+        lines += [f"* {m}: medians within 0.3 sd in {100 * within['median']:.1f} % of the (patient, parameter) pairs, widths within 25 % in "
+                  f"{100 * within['width']:.1f} %; {within['patients_all_parameters']} of {result['patients']} patients within both on every "
+                  f"parameter; {result[m]['seconds']:.1f} s for all of them."]
+    return lines + [""]
 
 
 def _leaves(value: Any, key: str = "") -> Iterator[tuple[str, str]]:

@@ -1,9 +1,9 @@
 """Benchmark and calibration of the shipped amortised posterior (optim.amortised); prints JSON.
 
-    python scripts/bench_amortised.py [--truths 300] [--cohort 1000] [--samples 1000] [--repeats 3] [--mcmc 1] [--seed 7]
+    python scripts/bench_amortised.py [--truths 300] [--cohort 1000] [--samples 1000] [--repeats 3] [--mcmc 1] [--seed 7] [--bases KIND ...] [--artefact FILE]
 
-Draws ``--truths`` held-out truths from optim.identify.posterior's prior over the artefact's base
-hearts and heart-rate range (a seed the training did not use), adds the noise of
+Draws ``--truths`` held-out truths from optim.identify.posterior's prior over the artefact's heart
+kinds (or ``--bases``, some of them) and heart-rate range (a seed the training did not use), adds the noise of
 optim.identify.NOISE, and builds one patient per truth targeting EF, ET, IVRT and the pulse
 pressure (the built-in patients' targets), repeated up to ``--cohort`` patients. Times
 ``optim.identify.amortised`` for the whole cohort at ``--samples`` samples each (the first call,
@@ -41,11 +41,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed calls after the first (default %(default)s)")
     parser.add_argument("--mcmc", type=int, default=1, help="patients also sampled by MCMC (default %(default)s)")
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--artefact", default=str(amortised.DEFAULT_ARTEFACT), help="the estimator (default: the shipped one)")
+    parser.add_argument("--bases", nargs="+", default=None, choices=amortised.KINDS, help="heart kinds of the truths (default: the artefact's)")
     a = parser.parse_args()
     jitcache.enable()
 
-    estimator = amortised.load()
-    patients, truths, skipped = amortised.held_out_patients(estimator, a.truths, a.seed)
+    estimator = amortised.load(a.artefact)
+    kinds = estimator.bases if a.bases is None else tuple(k for k in amortised.KINDS if k in a.bases)
+    patients, truths, skipped = amortised.held_out_patients(estimator, a.truths, a.seed, bases=kinds)
     cohort = [dataclasses.replace(patients[j % len(patients)], name=f"row{j}") for j in range(a.cohort)]
 
     t = time.perf_counter()
@@ -81,7 +84,7 @@ def main() -> None:
         "amortised_seconds_per_patient": per_patient, "mcmc_seconds_per_patient": mcmc_per_patient,
         "mcmc_cpu_seconds_per_patient": mcmc_cpu_per_patient,
         "speedup_per_patient": (mcmc_per_patient / per_patient) if mcmc else None,
-        "truths": len(truths), "skipped_truths": skipped, "targets": amortised.HELD_OUT_TARGETS,
+        "truths": len(truths), "bases": list(kinds), "skipped_truths": skipped, "targets": amortised.HELD_OUT_TARGETS,
         "coverage_90": dict(zip(DEFAULT_ACTION_PARAMS, map(float, coverage))), "rank_ks_p": dict(zip(DEFAULT_ACTION_PARAMS, ks)),
         "out_of_distribution": float(np.mean([p.out_of_distribution != "" for p in held])),
         "training": {k: estimator.meta["training"][k] for k in ("pairs", "best_validation_loss", "seconds")}, "mcmc": mcmc,

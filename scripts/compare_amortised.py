@@ -1,6 +1,6 @@
 """The amortised posterior beside the MCMC one (issue 33 item 7); prints JSON.
 
-    python scripts/compare_amortised.py [--truths 20] [--samples 4000] [--importance 8000] [--seed 7] [--bases KIND ...]
+    python scripts/compare_amortised.py [--truths 20] [--samples 4000] [--importance 8000] [--seed 7] [--bases KIND ...] [--artefact FILE]
         [--out out/compare] [sampler options]
 
 For the built-in patients and ``--truths`` held-out simulated truths (optim.amortised.held_out_patients
@@ -15,7 +15,8 @@ coordinate of its identification bound (log scale on log axes, where the prior i
 
 Also, for each of the two amortised posteriors, the worst of each over the patients, the fraction
 within the acceptance, the patients within it on every parameter and the seconds; the MCMC
-seconds per patient and its largest split R-hat; and ``pairs_<patient>.png`` in ``--out`` for the built-in patients (both posteriors
+seconds per patient and its largest split R-hat (all of it also in ``--out``/compare.json, which
+``lvenv report`` shows on the calibration page); and ``pairs_<patient>.png`` in ``--out`` for the built-in patients (both posteriors
 overlaid). MCMC costs about 100 s per patient on 2 quiet cores, so every finished patient's MCMC
 posterior is checkpointed in ``--out``/mcmc.npz (:func:`lvenv.archive.save`): its samples (at
 most :data:`KEPT` of them, unit-cube coordinates) and its seconds. The same command resumes after
@@ -113,6 +114,7 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=4000)
     parser.add_argument("--importance", type=int, default=8000, help="flow draws per patient of the importance-weighted posterior (0: none)")
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--artefact", default=str(amortised.DEFAULT_ARTEFACT), help="the estimator (default: the shipped one)")
     parser.add_argument("--bases", nargs="+", default=None, choices=amortised.KINDS,
                         help="heart kinds of the truths (default: all of the estimator's)")
     parser.add_argument("--out", default="out/compare", help="folder of the MCMC checkpoint and the pairs plots")
@@ -120,7 +122,7 @@ def main() -> None:
     a = parser.parse_args()
     jitcache.enable()
 
-    estimator = amortised.load()
+    estimator = amortised.load(a.artefact)
     kinds = estimator.bases if a.bases is None else tuple(k for k in amortised.KINDS if k in a.bases)
     truths, _, _ = amortised.held_out_patients(estimator, a.truths, a.seed, bases=kinds) if a.truths else ([], None, 0)
     patients = [builtin(n) for n in BUILTIN] + truths
@@ -141,13 +143,17 @@ def main() -> None:
             physical = space.from_unit(mcmc[p.name]["samples"])
             pairs_figure({"amortised": f.samples, "MCMC": {n: physical[:, j] for j, n in enumerate(space.names)}},
                          out / f"pairs_{p.name}.png", log=dict(zip(space.names, space.log)))
-    print(json.dumps({
+    result = {
         "patients": len(patients), "truths": len(truths), "samples": a.samples, "importance_draws": a.importance, "sampler": sampler_options(a),
         "mcmc_seconds_per_patient": float(np.mean([mcmc[p.name]["seconds"] for p in patients])),
         "mcmc_rhat_max": float(max(max(mcmc[p.name]["rhat"].values()) for p in patients)),
         **{name: summary(posts, patients, mcmc, seconds) for name, (posts, seconds) in methods.items()},
         "plots": sorted(str(q) for q in out.glob("pairs_*.png")),
-    }, indent=2, default=float))
+        "command": "python scripts/compare_amortised.py " + " ".join(sys.argv[1:]),
+    }
+    text = json.dumps(result, indent=2, default=float)
+    archive.write_text(out / "compare.json", text)
+    print(text)
 
 
 if __name__ == "__main__":

@@ -149,29 +149,32 @@ def test_cohort_command_skips_bad_rows_naming_their_lines_and_fits_the_rest(tmp_
 def test_cohort_posterior_adds_medians_intervals_and_flags_per_row(tmp_path, capsys):
     """--posterior amortised: every parameter's median inside its 90 % interval inside its bound;
     a row far from every simulated heart is flagged with the density reason, a row with a target
-    the estimator does not take (EDV) is flagged with that reason and has empty cells."""
+    the estimator does not take (EDV) is flagged with that reason and has empty cells; a row with
+    a geometry (its anatomy's regression maps) is answered, one outside the anatomy box flagged."""
     import csv
 
     from optim.cohort import parameter_column
 
     reports = tmp_path / "reports.csv"
-    reports.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg,HR_bpm,EDV_ml\n"
-                       "A,58,290,85,124,78,64,\nB,55,300,90,120,80,70,130\nC,15,120,250,220,40,64,\n")
+    reports.write_text("id,EF_pct,ET_ms,IVRT_ms,SBP_mmHg,DBP_mmHg,HR_bpm,EDV_ml,Rb_mm,H_mm\n"
+                       "A,58,290,85,124,78,64,,,\nB,55,300,90,120,80,70,130,,\nC,10,80,300,230,42,64,,,\n"
+                       "D,58,290,85,124,78,64,,31,8\nE,58,290,85,124,78,64,,60,8\n")
     fits = tmp_path / "fits.csv"
     argv = ["cohort", str(reports), "--out", str(fits), "--budget", "8", "--candidates", "8", "--posterior", "amortised", "--samples", "400"]
     assert cli.main(argv + ["--json"]) == cli.EXIT_OK
-    assert json.loads(capsys.readouterr().out)["posterior"] == {"flagged": 2, "refined": 0}
+    assert json.loads(capsys.readouterr().out)["posterior"] == {"flagged": 3, "refined": 0}
     rows = {r["id"]: r for r in csv.DictReader(fits.open())}
     header = fits.read_text().splitlines()[0].split(",")
     assert header[-5:] == ["post_sampler", "post_refined", "post_ood", "post_ood_reason", "line"]
     assert header.index("tau2_s_post_median") + 1 == header.index("tau2_s_post_q05") and "Cat_ml_per_kPa_post_q95" in header
-    for rid in "AC":
+    for rid in "ACD":
         assert rows[rid]["post_sampler"] == "amortised" and rows[rid]["post_refined"] == "0"
         for name, bound in ACTION_BOUNDS.items():
             column = parameter_column(name)
             lo, median, hi = (float(rows[rid][f"{column}_post_{s}"]) for s in ("q05", "median", "q95"))
             assert bound.lo <= lo < median < hi <= bound.hi, (rid, name)
-    assert (rows["A"]["post_ood"], rows["A"]["post_ood_reason"]) == ("0", "")
+    assert (rows["A"]["post_ood"], rows["A"]["post_ood_reason"]) == (rows["D"]["post_ood"], rows["D"]["post_ood_reason"]) == ("0", "")
+    assert rows["E"]["post_ood"] == "1" and "Rb = 60 outside" in rows["E"]["post_ood_reason"] and rows["E"]["post_sampler"] == ""
     assert rows["C"]["post_ood"] == "1" and "log density" in rows["C"]["post_ood_reason"]
     assert rows["B"]["post_ood"] == "1" and "['EDV']" in rows["B"]["post_ood_reason"] and rows["B"]["post_sampler"] == ""
     assert rows["B"]["tau2_s_post_median"] == rows["B"]["Sa_post_q95"] == ""

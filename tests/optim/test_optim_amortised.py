@@ -206,7 +206,7 @@ def test_refine_replaces_flagged_posteriors_by_mcmc_and_keeps_the_flag():
     the MCMC posterior, marked refined with its reason kept; the one in distribution keeps the
     amortised answer; one the estimator does not cover is flagged with the reason."""
     normal = builtin("normal")
-    far = dataclasses.replace(normal, name="far", targets={"EF": 0.15, "ET": 0.12, "IVRT": 0.25, "P_ao_pulse": 20.0})
+    far = dataclasses.replace(normal, name="far", targets={"EF": 0.1, "ET": 0.08, "IVRT": 0.3, "P_ao_pulse": 25.0})
     volume = dataclasses.replace(normal, name="volume", targets={"EF": 0.6, "EDV": 120.0})
     mcmc = {"walkers": 12, "steps": 4, "chains": 0, "steps_per_beat": 200, "max_beats": 20}
     answers = identify_patients([normal, far, volume], 200, refine=False)
@@ -220,10 +220,11 @@ def test_refine_replaces_flagged_posteriors_by_mcmc_and_keeps_the_flag():
 
 
 def test_shipped_artefact_answers_the_built_in_patients():
-    """The shipped artefact loads (its metadata matches this code) and places the built-in
-    patients in distribution, with HF's contraction efficiency below N's more likely than not."""
+    """The shipped artefact loads (its metadata matches this code: the anatomy regression too),
+    covers every heart kind and places the built-in patients in distribution, with HF's
+    contraction efficiency below N's more likely than not."""
     estimator = amortised.load()
-    assert estimator.meta["training"]["pairs"] >= 10_000 and estimator.bases == amortised.BASES
+    assert estimator.meta["training"]["pairs"] >= 10_000 and estimator.bases == amortised.KINDS
     normal, failure = amortised_posteriors([builtin("normal"), builtin("heart_failure")], n_samples=2000, estimator=estimator)
     assert normal.out_of_distribution == failure.out_of_distribution == ""
     assert np.median(failure.samples["Sa"]) < np.median(normal.samples["Sa"]) * 1.5

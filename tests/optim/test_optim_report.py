@@ -26,6 +26,13 @@ def _results(root):
         "truths": 300, "out_of_distribution": 0.02, "coverage_90": {n: 0.9 for n in params}, "rank_ks_p": {"tau2": 0.25, "Sa": 0.0081},
         "training": {"pairs": 18802, "seconds": 11.068963}, "targets": ["EF", "ET"], "mcmc": [{"patient": "truth0", "seconds": 962.74}],
         "rows": {f"r{i}": i for i in range(report.BENCH_ROWS)}}))
+    (root / "compare").mkdir()
+    method = lambda shift, ratio, share, agree: {
+        "seconds": 2.0, "worst_median_shift_sd": {"tau2": shift, "Sa": shift / 2}, "width_ratio_range": {n: [1 - ratio, 1 + ratio] for n in params},
+        "within_acceptance": {"median": share, "width": 1.0, "patients_all_parameters": agree}}
+    (root / "compare" / "compare.json").write_text(json.dumps({
+        "patients": 22, "truths": 20, "samples": 4000, "importance_draws": 8000, "mcmc_seconds_per_patient": 110.0, "mcmc_rhat_max": 1.037,
+        "amortised": method(0.65, 0.3, 0.833, 9), "importance": method(0.09, 0.1, 1.0, 22), "command": "python scripts/compare_amortised.py --truths 20"}))
     (root / "fit").mkdir()
     (root / "fit" / "fits.txt").write_text("patient  method  mismatch\nnormal   mads    0.42 %\n")
     os.utime(root / "fit" / "fits.txt", (0, 86400 * 365))  # 1971-01-01
@@ -57,6 +64,9 @@ def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_
     assert "`python scripts/calibration.py --truths 20 --draw prior --seed 3` (other settings: walkers 64)" in calibration
     assert "| equal-tailed | 0.85 (P 0.32) | 0.95 (P 0.88) |" in calibration and "| median width | 0.27 | 0.41 |" in calibration
     assert "On 300 held-out truths" in calibration and "2.0 % flagged" in calibration and "| rank KS p | 0.25 | 0.0081 |" in calibration
+    assert "## Amortised against MCMC\n\nCommand: `python scripts/compare_amortised.py --truths 20`" in calibration
+    assert "| amortised: median shift (sd) | 0.65 | 0.33 |" in calibration and "| importance: width ratio | 0.90–1.10 | 0.90–1.10 |" in calibration
+    assert "* importance: medians within 0.3 sd in 100.0 %" in calibration and "22 of 22 patients within both" in calibration
     bench = text["benchmarks"]
     assert "Command: `lvenv bench amortised`" in bench
     assert "| `training.seconds` | 11.07 |" in bench and "| `targets` | EF, ET |" in bench and "| `mcmc[0].patient` | truth0 |" in bench
