@@ -104,7 +104,7 @@ CONDITION = (*OBSERVED, *(f"mask_{k}" for k in OBSERVED), "HR", *GEOMETRY)
 #: The base presets a default training set draws its hearts from (:mod:`lvenv.presets`).
 BASES = ("normal", "heart_failure")
 #: The heart kind drawn over anatomies: the N preset's cell and circulation with an unloaded
-#: geometry uniform in the anatomy campaign's box (:data:`optim.campaign.BOX`) and the LO maps the
+#: geometry uniform in the anatomy regression's box (the campaign's, :data:`optim.campaign.BOX`) and the LO maps the
 #: anatomy regression predicts for it (:func:`lvenv.anatomy.predicted_maps`), as a cohort row or a
 #: patient record with a geometry gets them.
 ANATOMY = "anatomy"
@@ -224,9 +224,11 @@ def _kinds(bases: Sequence[str]) -> tuple[str, ...]:
 
 
 def _anatomy_box() -> dict[str, tuple[float, float]]:
-    from optim.campaign import BOX
+    """The box the anatomy regression's training anatomies were sampled in (the campaign's,
+    :data:`optim.campaign.BOX`), as the regression records it: where its maps are interpolated."""
+    from lvenv.anatomy import load_regression
 
-    return {name: (float(lo), float(hi)) for name, (lo, hi) in BOX.items()}
+    return {name: (float(lo), float(hi)) for name, (lo, hi) in load_regression().box.items()}
 
 
 def simulate(n: int, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, float] = HEART_RATE, seed: int = 0, batch: int = 256) -> Any:
@@ -238,8 +240,6 @@ def simulate(n: int, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, f
     kind draws one anatomy per :data:`PAIRS_PER_ANATOMY` pairs (uniform in the box, seed
     ``[seed, 7]``; its pairs' seed is ``seed +`` :data:`ANATOMY_SEED`). Each pair's ``base`` is
     its kind's index in :data:`KINDS`, its ``geometry`` its heart's."""
-    from optim.identify import PriorSample
-
     n, kinds = integer("n", n, 1), _kinds(bases)
     preset_kinds = [k for k in kinds if k != ANATOMY]
     n_anatomy = n // len(kinds) if ANATOMY in kinds else 0

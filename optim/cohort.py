@@ -63,10 +63,12 @@ Posterior (``posterior=PosteriorOptions()``, ``lvenv cohort --posterior amortise
 fits, every pending row's amortised posterior (:func:`optim.identify.identify_patients`, one
 batched pass) adds, per fitted parameter, ``<column>_post_median``, ``<column>_post_q05`` and
 ``<column>_post_q95`` (``<column>`` its fitted column, e.g. ``tau2_s_post_median``: the median
-and the 90 % equal-tailed interval, internal units), then ``post_sampler`` (``amortised``, or
-the MCMC sampler of a refined row), ``post_refined`` (1 or 0), ``post_ood`` (1 if the amortised
-answer is flagged: outside the training distribution, or a row the estimator does not cover, e.g.
-one with EDV_ml or a geometry) and ``post_ood_reason``. With ``refine`` the flagged rows get the
+and the 90 % equal-tailed interval, internal units), then ``post_sampler`` (``amortised``,
+``importance`` where ``PosteriorOptions.importance`` reweights the flow's draws, or the MCMC
+sampler of a refined row), ``post_refined`` (1 or 0), ``post_ood`` (1 if the amortised answer is
+flagged: outside the training distribution, unreliable importance weights, or a row the estimator
+does not cover, e.g. one with EDV_ml or a geometry outside the anatomy box) and
+``post_ood_reason``. With ``refine`` the flagged rows get the
 MCMC posterior (:func:`optim.identify.posterior`, minutes each) instead. A row's draws depend
 on the seed and on the batch it was drawn in, so a resumed run draws its remaining rows afresh.
 
