@@ -373,7 +373,7 @@ def _posterior_payload(identified) -> dict:
 def _posterior_table(identified) -> Table:
     post = identified.posterior
     what = ("no posterior" if post is None else f"MCMC ({post.sampler}), refined" if identified.refined
-            else f"amortised, importance-weighted (ESS {next(iter(post.ess.values())):.0f} of {post.evaluations}, Pareto k {post.pareto_k:.2f})"
+            else f"amortised, importance-weighted (ESS {post.weights_ess:.0f} of {post.evaluations}, Pareto k {post.pareto_k:.2f})"
             if post.sampler == "importance" else "amortised")
     flag = f"; FLAGGED: {identified.flag}" if identified.flag else ""
     table = Table(title=f"posterior of {identified.patient}: {what}{flag}", title_justify="left")

@@ -34,10 +34,13 @@ regression asks for a retrained estimator.
 
 Flow: a coupling flow of rational-quadratic splines (Durkan C et al., NeurIPS 2019;
 ``flowjax.flows.coupling_flow``), fast in both directions, trained by maximum likelihood with Adam
-(optax), each epoch one jitted ``lax.scan`` over its minibatches: a held-out fraction
-``val_prop`` of the pairs gives the validation loss (mean −log q in the standardised logit
-coordinates, nats), training stops after ``patience`` epochs without improvement (or at a time
-budget) and keeps the best epoch's parameters.
+(optax), each epoch one jitted ``lax.scan`` over its minibatches. Every epoch draws fresh noise
+and masks for the training rows, so the flow never learns one noise realisation. A held-out
+fraction ``val_prop`` of the pairs (noise drawn once) gives the validation loss (mean −log q in
+the standardised logit coordinates, nats); the learning rate is multiplied by ``decay`` after
+every ``plateau`` epochs without improvement (Adam's step noise otherwise keeps the loss
+0.02–0.05 nats above its floor), training stops after ``patience`` epochs without improvement
+(or at a time budget) and keeps the best epoch's parameters.
 
 Out-of-distribution check (:meth:`Estimator.out_of_distribution`). A patient is flagged when
 
@@ -61,7 +64,7 @@ array's shape and every recorded setting against this code: a malformed file, an
 version, other bounds, noise, bands, bases or observation names give an
 :class:`lvenv.archive.ArchiveError` that says what differs.
 
-Length: a little over 600 lines, because the training pairs, the flow, its batched sampler and
+Length: over 800 lines, because the training pairs, the flow, its batched sampler and
 the artefact that rebuilds it are one estimator: the artefact's checks must name every setting
 the pairs and the flow were made with.
 """
@@ -74,7 +77,7 @@ import importlib.metadata
 import pathlib
 import subprocess
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -92,7 +95,7 @@ from optim.identify.noise import NOISE, Relative, measurement_sd
 
 __all__ = ["OBSERVED", "GEOMETRY", "CONDITION", "BASES", "HEART_RATE", "MISSING", "OOD_QUANTILE", "OOD_COMPONENTS", "OOD_FIT_ROWS", "FORMAT", "VERSION",
            "DEFAULT_ARTEFACT", "DRAWS_FORMAT", "SAMPLE_BLOCK", "Architecture", "Estimator", "training_patients", "simulate", "save_draws", "load_draws", "train", "save", "load", "covered_geometry", "anatomy_heart", "observations", "ANATOMY", "KINDS",
-           "PAIRS_PER_ANATOMY", "ANATOMY_SEED",
+           "PAIRS_PER_ANATOMY", "ANATOMY_SEED", "heart_kinds",
            "HELD_OUT_TARGETS", "held_out_patients"]
 
 #: The targets the estimator conditions on (internal units: EF fraction, times s, pressures kPa).
@@ -140,7 +143,7 @@ class Architecture:
     flow_layers: int = 6
     knots: int = 8
     interval: float = 5.0
-    nn_width: int = 64
+    nn_width: int = 128
     nn_depth: int = 2
 
     def build(self, seed: int = 0) -> Any:
@@ -215,12 +218,13 @@ def anatomy_heart(geometry: Geometry) -> Heart:
     return presets.normal().replace(geometry=geometry, lo=predicted_maps(geometry)[0])
 
 
-def _kinds(bases: Sequence[str]) -> tuple[str, ...]:
-    """``bases`` checked: distinct heart kinds of :data:`KINDS`, in its order."""
+def heart_kinds(bases: Sequence[str]) -> tuple[str, ...]:
+    """``bases`` checked, in :data:`KINDS` order: distinct heart kinds of :data:`KINDS`, at least one;
+    :class:`InputError` otherwise."""
     bases = tuple(bases)
-    if not bases or any(b not in KINDS for b in bases) or tuple(k for k in KINDS if k in bases) != bases:
-        raise InputError(f"bases = {list(bases)}: give distinct heart kinds of {list(KINDS)}, in that order")
-    return bases
+    if not bases or any(b not in KINDS for b in bases) or len(set(bases)) != len(bases):
+        raise InputError(f"bases = {list(bases)}: give distinct heart kinds of {list(KINDS)}")
+    return tuple(k for k in KINDS if k in bases)
 
 
 def _anatomy_box() -> dict[str, tuple[float, float]]:
@@ -240,7 +244,7 @@ def simulate(n: int, *, bases: Sequence[str] = BASES, heart_rate: tuple[float, f
     kind draws one anatomy per :data:`PAIRS_PER_ANATOMY` pairs (uniform in the box, seed
     ``[seed, 7]``; its pairs' seed is ``seed +`` :data:`ANATOMY_SEED`). Each pair's ``base`` is
     its kind's index in :data:`KINDS`, its ``geometry`` its heart's."""
-    n, kinds = integer("n", n, 1), _kinds(bases)
+    n, kinds = integer("n", n, 1), heart_kinds(bases)
     preset_kinds = [k for k in kinds if k != ANATOMY]
     n_anatomy = n // len(kinds) if ANATOMY in kinds else 0
     parts = []
@@ -285,7 +289,7 @@ def load_draws(path: str | pathlib.Path, *, bases: Sequence[str] | None = None,
         raise ArchiveError(f"{what} are not {DRAWS_FORMAT!r} pairs of {list(OBSERVED)} (format {meta.get('format')!r}, targets {meta.get('names')})")
     recorded = (meta.get("prior") or {}).get("bases") if isinstance(meta.get("prior"), dict) else None
     try:
-        kinds = _kinds(recorded if bases is None else bases)
+        kinds = heart_kinds(recorded if bases is None else bases)
         expected = _prior_meta(kinds, heart_rate)
     except (InputError, TypeError):
         raise ArchiveError(f"{what} were drawn over the heart kinds {recorded}, not kinds of {list(KINDS)}") from None
@@ -293,7 +297,7 @@ def load_draws(path: str | pathlib.Path, *, bases: Sequence[str] | None = None,
         raise ArchiveError(f"{what} were drawn under the prior {meta.get('prior')}, not this code's {expected}; simulate new ones")
     n = len(arrays.get("parameters", ()))
     if "geometry" not in arrays and ANATOMY not in kinds and "base" in arrays:
-        shapes = np.array([[getattr(_base_heart(k).geometry, g) for g in GEOMETRY] for k in kinds])
+        shapes = np.array([_base_heart(k).geometry.as_tuple() for k in kinds])
         arrays["geometry"] = shapes[np.clip(arrays["base"].astype(int), 0, len(kinds) - 1)]
     shapes = {"parameters": (n, len(DEFAULT_ACTION_PARAMS)), "observations": (n, len(OBSERVED)), "heart_rate": (n,), "base": (n,),
               "geometry": (n, len(GEOMETRY))}
@@ -324,7 +328,7 @@ def covered_geometry(heart: Heart, bases: Sequence[str]) -> np.ndarray:
     saying why not otherwise."""
     free = (*DEFAULT_ACTION_PARAMS, "HR")
     same = lambda other: heart.replace(**{k: heart.get(k) for k in free}) == other.replace(**{k: heart.get(k) for k in free})
-    row = np.array([float(getattr(heart.geometry, g)) for g in GEOMETRY])
+    row = np.array(heart.geometry.as_tuple())
     for name in bases:
         if name != ANATOMY and same(_base_heart(name)):
             return row
@@ -570,35 +574,41 @@ def train(
     learning_rate: float = 1e-3,
     max_epochs: int = 200,
     patience: int = 10,
+    plateau: int = 3,
+    decay: float = 0.5,
     max_seconds: float = float("inf"),
     code_version: str | None = None,
+    progress: Callable[[int, float, float, float], None] | None = None,
 ) -> Estimator:
     """Train an estimator on ``draws`` (an :class:`optim.identify.PriorSample` of
     :data:`OBSERVED` over ``bases`` and ``heart_rate``, e.g. from :func:`simulate`), each pair
-    used ``copies`` times with fresh noise and masks (module docstring). The first ``val_prop``
-    of the shuffled pairs, each with all its copies, are the validation set
-    (:func:`_validation_first`); Adam (``learning_rate``, gradients clipped to
-    norm 10) on minibatches of ``batch_size`` for at most ``max_epochs`` epochs, stopping after
-    ``patience`` epochs without a better validation loss or once ``max_seconds`` have passed at
-    an epoch's end, and keeping the epoch with the best validation loss. ``code_version``: for
-    the metadata (default: lvenv's version and git commit, where known)."""
+    used ``copies`` times per epoch, each time with fresh noise and masks (module docstring). The
+    first ``val_prop`` of the shuffled pairs, each with all its copies, are the validation set
+    (:func:`_validation_first`; their noise drawn once); Adam (``learning_rate``, gradients
+    clipped to norm 10, the rate times ``decay`` after every ``plateau`` epochs without a better
+    validation loss) on minibatches of ``batch_size`` for at most ``max_epochs`` epochs, stopping
+    after ``patience`` epochs without a better validation loss or once ``max_seconds`` have
+    passed at an epoch's end, and keeping the epoch with the best validation loss. ``code_version``: for
+    the metadata (default: lvenv's version and git commit, where known). ``progress(epoch, train
+    loss, validation loss, learning rate)`` is called after every epoch."""
     from sklearn.mixture import GaussianMixture
 
 
     if tuple(draws.names) != OBSERVED:
         raise InputError(f"the draws observe {draws.names}; the estimator needs {OBSERVED}")
-    kinds = _kinds(bases)
+    kinds = heart_kinds(bases)
     if stray := sorted({KINDS[b] for b in np.unique(draws.base)} - set(kinds)):
         raise InputError(f"the draws hold hearts of kinds {stray} that bases = {list(kinds)} leave out")
     seed, copies = integer("seed", seed, 0), integer("copies", copies, 1)
     val_prop = real("val_prop", val_prop, 0.0, 0.5, lo_open=True)
+    decay = real("decay", decay, 0.0, 1.0, lo_open=True)
     sigma = _noise_sd(NOISE if noise is None else noise)
     rng = np.random.default_rng(seed)
-    x = np.tile(draws.parameters, (copies, 1))
-    obs = _noisy_masked(np.tile(draws.observations, (copies, 1)), sigma, rng)
+    x, clean = np.tile(draws.parameters, (copies, 1)), np.tile(draws.observations, (copies, 1))
+    obs = _noisy_masked(clean, sigma, rng)
     hr, geometry = np.tile(draws.heart_rate, copies), np.tile(draws.geometry, (copies, 1))
     order, n_val = _validation_first(len(draws.parameters), copies, val_prop, rng)
-    x, obs, hr, geometry = x[order], obs[order], hr[order], geometry[order]
+    x, clean, obs, hr, geometry = x[order], clean[order], obs[order], hr[order], geometry[order]
     z = to_logit(ParameterSpace.for_names(DEFAULT_ACTION_PARAMS).to_unit(x))
     rest = np.column_stack([hr, geometry])
     rest_sd = rest.std(axis=0)
@@ -609,9 +619,14 @@ def train(
             "architecture": dataclasses.asdict(architecture)}
     estimator = Estimator(architecture.build(seed), architecture, arrays, meta)
     theta, cond = (z - arrays["theta_mean"]) / arrays["theta_sd"], estimator.condition(obs, hr, geometry)
+
+    def fresh_condition(generator: np.random.Generator) -> np.ndarray:
+        return estimator.condition(_noisy_masked(clean[n_val:], sigma, generator), hr[n_val:], geometry[n_val:])
+
     started = time.perf_counter()
-    flow, losses = _fit(estimator.flow, (theta[n_val:], cond[n_val:]), (theta[:n_val], cond[:n_val]), seed=seed, batch_size=batch_size,
-                        learning_rate=learning_rate, max_epochs=max_epochs, patience=patience, max_seconds=max_seconds)
+    flow, losses = _fit(estimator.flow, (theta[n_val:], fresh_condition), (theta[:n_val], cond[:n_val]), seed=seed, batch_size=batch_size,
+                        learning_rate=learning_rate, max_epochs=max_epochs, patience=patience, plateau=plateau, decay=decay, max_seconds=max_seconds,
+                        progress=progress)
     seconds = time.perf_counter() - started
     # The out-of-distribution mixture: fitted to fresh noisy full observations of the pairs; the
     # thresholds come from the first val_prop of them, left out of the fit.
@@ -627,8 +642,9 @@ def train(
         threshold[code] = np.quantile(_mixture_log_density(gmm.weights_, gmm.means_, gmm.covariances_, y[:n_val], mask), OOD_QUANTILE)
     arrays.update(ood_weights=gmm.weights_, ood_means=gmm.means_, ood_covariances=gmm.covariances_, ood_threshold=threshold)
     meta["training"] = {"pairs": int(len(draws.parameters)), "copies": copies, "tried": int(draws.tried), "left_out": dict(draws.left_out),
-                        "seed": seed, "val_prop": val_prop, "batch_size": batch_size, "learning_rate": learning_rate, "epochs": len(losses["train"]),
-                        "seconds": seconds, "train_loss": losses["train"], "validation_loss": losses["val"],
+                        "seed": seed, "val_prop": val_prop, "batch_size": batch_size, "learning_rate": learning_rate, "plateau": plateau, "decay": decay,
+                        "epochs": len(losses["train"]), "seconds": seconds, "train_loss": losses["train"], "validation_loss": losses["val"],
+                        "learning_rates": losses["rate"],
                         "best_validation_loss": float(min(losses["val"]))}
     meta["code_version"] = code_version or _code_version()
     return Estimator(flow, architecture, arrays, meta)
@@ -649,11 +665,14 @@ def _validation_first(n_pairs: int, copies: int, val_prop: float, rng: np.random
     return np.concatenate([order[validation], order[~validation]]), int(np.count_nonzero(validation))
 
 
-def _fit(flow: Any, train_set: tuple[np.ndarray, np.ndarray], val_set: tuple[np.ndarray, np.ndarray], *, seed: int, batch_size: int,
-         learning_rate: float, max_epochs: int, patience: int, max_seconds: float) -> tuple[Any, dict[str, list[float]]]:
-    """Maximum likelihood of ``flow`` on (θ, c) ``train_set`` with early stopping on ``val_set``
-    (:func:`train`); each epoch is one jitted ``lax.scan`` over its minibatches. Returns the best
-    flow and the per-epoch mean losses (−log q, nats)."""
+def _fit(flow: Any, train_set: tuple[np.ndarray, Callable[[np.random.Generator], np.ndarray]], val_set: tuple[np.ndarray, np.ndarray], *, seed: int,
+         batch_size: int, learning_rate: float, max_epochs: int, patience: int, plateau: int, decay: float,
+         max_seconds: float, progress: Callable[[int, float, float, float], None] | None) -> tuple[Any, dict[str, list[float]]]:
+    """Maximum likelihood of ``flow`` on ``train_set`` (θ, and a function of a generator that draws
+    the rows' conditions c afresh each epoch) with early stopping on (θ, c) ``val_set`` and the
+    learning rate times ``decay`` after every ``plateau`` epochs without improvement
+    (:func:`train`, also for ``progress``); each epoch is one jitted ``lax.scan`` over its
+    minibatches. Returns the best flow and the per-epoch mean losses (−log q, nats) and learning rates."""
     import equinox as eqx
     import jax
     import jax.numpy as jnp
@@ -661,21 +680,21 @@ def _fit(flow: Any, train_set: tuple[np.ndarray, np.ndarray], val_set: tuple[np.
     import paramax
 
     batch_size = integer("batch_size", batch_size, 1)
-    max_epochs, patience = integer("max_epochs", max_epochs, 1), integer("patience", patience, 1)
+    max_epochs, patience, plateau = integer("max_epochs", max_epochs, 1), integer("patience", patience, 1), integer("plateau", plateau, 1)
     params, static = eqx.partition(flow, eqx.is_inexact_array, is_leaf=lambda leaf: isinstance(leaf, paramax.NonTrainable))
-    optimizer = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(learning_rate))
+    optimizer = optax.chain(optax.clip_by_global_norm(10.0), optax.scale_by_adam())
     opt_state = optimizer.init(params)
 
     def loss(p: Any, theta: jax.Array, cond: jax.Array) -> jax.Array:
         return -jnp.mean(paramax.unwrap(eqx.combine(p, static)).log_prob(theta, cond))
 
     @jax.jit
-    def epoch(p: Any, state: Any, theta: jax.Array, cond: jax.Array) -> tuple[Any, Any, jax.Array]:
+    def epoch(p: Any, state: Any, rate: jax.Array, theta: jax.Array, cond: jax.Array) -> tuple[Any, Any, jax.Array]:
         def body(carry: Any, batch: tuple[jax.Array, jax.Array]) -> tuple[Any, jax.Array]:
             p, state = carry
             value, grads = jax.value_and_grad(loss)(p, *batch)
             updates, state = optimizer.update(grads, state, p)
-            return (optax.apply_updates(p, updates), state), value
+            return (optax.apply_updates(p, jax.tree.map(lambda u: -rate * u, updates)), state), value
 
         (p, state), values = jax.lax.scan(body, (p, state), (theta, cond))
         return p, state, jnp.mean(values)
@@ -688,21 +707,28 @@ def _fit(flow: Any, train_set: tuple[np.ndarray, np.ndarray], val_set: tuple[np.
         count = max(1, len(a) // size)
         return jnp.asarray(a[: count * size].reshape(count, size, *a.shape[1:]))
 
-    size = min(batch_size, len(train_set[0]))
+    theta, condition = train_set
+    size = min(batch_size, len(theta))
     val_size = min(4 * size, len(val_set[0]))
     val = (batched(val_set[0], val_size), batched(val_set[1], val_size))
     rng = np.random.default_rng(seed)
-    best, best_loss, losses = params, np.inf, {"train": [], "val": []}
+    best, rate, losses = params, learning_rate, {"train": [], "val": [], "rate": []}
     started = time.perf_counter()
     for _ in range(max_epochs):
-        order = rng.permutation(len(train_set[0]))
-        params, opt_state, value = epoch(params, opt_state, batched(train_set[0][order], size), batched(train_set[1][order], size))
+        cond, order = condition(rng), rng.permutation(len(theta))
+        params, opt_state, value = epoch(params, opt_state, jnp.asarray(rate), batched(theta[order], size), batched(cond[order], size))
         losses["train"].append(float(value))
         losses["val"].append(float(validation(params, *val)))
-        if losses["val"][-1] < best_loss:
-            best, best_loss = params, losses["val"][-1]
-        elif len(losses["val"]) - 1 - int(np.argmin(losses["val"])) >= patience:
+        losses["rate"].append(rate)
+        if progress is not None:
+            progress(len(losses["val"]), losses["train"][-1], losses["val"][-1], rate)
+        stale = len(losses["val"]) - 1 - int(np.argmin(losses["val"]))
+        if stale == 0:
+            best = params
+        elif stale >= patience:
             break
+        elif stale % plateau == 0:
+            rate *= decay
         if time.perf_counter() - started > max_seconds:
             break
     return eqx.combine(best, static), losses
@@ -736,7 +762,7 @@ def load(path: str | pathlib.Path = DEFAULT_ARTEFACT) -> Estimator:
     if not isinstance(prior, dict) or not isinstance(prior.get("bases"), list) or not isinstance(prior.get("heart_rate"), list):
         raise ArchiveError(f"{what} has no valid prior in its metadata")
     try:
-        current = _prior_meta(_kinds(prior["bases"]), tuple(prior["heart_rate"]))
+        current = _prior_meta(heart_kinds(prior["bases"]), tuple(prior["heart_rate"]))
     except (InputError, TypeError, ValueError):
         current = None
     if current is None or not _json_equal(prior, current):
@@ -776,7 +802,7 @@ def held_out_patients(estimator: Estimator, n: int, seed: int, targets: Sequence
     :data:`optim.identify.NOISE` (``numpy`` seed ``seed``). Returns the patients, their true
     parameters (m, 6; physical units, columns :data:`DEFAULT_ACTION_PARAMS`) and how many truths
     were skipped because the noise pushed a target outside its metric's range."""
-    kinds = estimator.bases if bases is None else _kinds(bases)
+    kinds = estimator.bases if bases is None else heart_kinds(bases)
     if stray := sorted(set(kinds) - set(estimator.bases)):
         raise InputError(f"bases {stray} are not among the estimator's heart kinds {list(estimator.bases)}")
     draws = simulate(n, bases=kinds, heart_rate=estimator.heart_rate, seed=seed + 1000, batch=128)

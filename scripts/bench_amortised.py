@@ -47,7 +47,7 @@ def main() -> None:
     jitcache.enable()
 
     estimator = amortised.load(a.artefact)
-    kinds = estimator.bases if a.bases is None else tuple(k for k in amortised.KINDS if k in a.bases)
+    kinds = estimator.bases if a.bases is None else amortised.heart_kinds(a.bases)
     patients, truths, skipped = amortised.held_out_patients(estimator, a.truths, a.seed, bases=kinds)
     cohort = [dataclasses.replace(patients[j % len(patients)], name=f"row{j}") for j in range(a.cohort)]
 

@@ -96,7 +96,7 @@ def mcmc_posteriors(patients, out: Path, settings: dict, options: dict, seed: in
 def summary(posteriors, patients, mcmc: dict[str, dict], seconds: float) -> dict:
     """The acceptance figures of ``posteriors`` (one per patient) against the MCMC ones."""
     rows = {p.name: {"compare": compare(unit_samples(f), mcmc[p.name]["samples"]), "median": f.median, "interval_90": f.interval_90,
-                     "ess": next(iter(f.ess.values())), "pareto_k": f.pareto_k, "out_of_distribution": f.out_of_distribution}
+                     "ess": f.weights_ess, "pareto_k": f.pareto_k, "out_of_distribution": f.out_of_distribution}
             for p, f in zip(patients, posteriors)}
     shift = np.array([[r["compare"][n]["median_shift_sd"] for n in DEFAULT_ACTION_PARAMS] for r in rows.values()])
     ratio = np.array([[r["compare"][n]["width_ratio"] for n in DEFAULT_ACTION_PARAMS] for r in rows.values()])
@@ -123,7 +123,7 @@ def main() -> None:
     jitcache.enable()
 
     estimator = amortised.load(a.artefact)
-    kinds = estimator.bases if a.bases is None else tuple(k for k in amortised.KINDS if k in a.bases)
+    kinds = estimator.bases if a.bases is None else amortised.heart_kinds(a.bases)
     truths, _, _ = amortised.held_out_patients(estimator, a.truths, a.seed, bases=kinds) if a.truths else ([], None, 0)
     patients = [builtin(n) for n in BUILTIN] + truths
     methods = {}

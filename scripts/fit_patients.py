@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lvenv.cli import IMPORTANCE_PER_SAMPLE
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.patients import builtin
 from lvenv.metrics import display, header
@@ -93,7 +94,7 @@ def print_posteriors(patients, n_samples: int, seed: int, importance: int) -> No
         print(f"{p:14s} " + " | ".join(f"{c:>{w}s}" for c, w in zip(cells[p], widths)))
     for p, a in answers.items():
         if importance and a.posterior is not None:
-            print(f"{p}: importance weights' effective sample size {next(iter(a.posterior.ess.values())):.0f} of {importance}, "
+            print(f"{p}: importance weights' effective sample size {a.posterior.weights_ess:.0f} of {importance}, "
                   f"Pareto k {a.posterior.pareto_k:.2f}")
         if a.flag:
             print(f"{p}: FLAGGED, not to be trusted: {a.flag}")
@@ -126,7 +127,7 @@ def main() -> None:
                     help="draws of each patient's amortised posterior (0: none; default %(default)s)")
     ap.add_argument("--importance", type=int, default=None, metavar="N",
                     help="flow draws per patient reweighted by the exact posterior (one simulation each; 0: the flow's draws as they are; "
-                         "default: twice --posterior-samples)")
+                         f"default: {IMPORTANCE_PER_SAMPLE} per posterior sample)")
     a = ap.parse_args()
     if a.synthetic:
         rep = synthetic_recovery(a.synthetic, a.method, a.num_envs, a.budget or 1600, a.seed, a.steps_per_beat)
@@ -146,7 +147,7 @@ def main() -> None:
     with contextlib.redirect_stdout(table):
         print_fits(rows, a.plausibility)
         if a.posterior_samples:
-            print_posteriors(a.patients, a.posterior_samples, a.seed, a.importance if a.importance is not None else 2 * a.posterior_samples)
+            print_posteriors(a.patients, a.posterior_samples, a.seed, a.importance if a.importance is not None else IMPORTANCE_PER_SAMPLE * a.posterior_samples)
     print(table.getvalue(), end="")
     Path(a.out, "fits.txt").write_text(table.getvalue())  # for `lvenv report`
     worst = max(r.mismatch for r in rows)

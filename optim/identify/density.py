@@ -218,7 +218,7 @@ def prior_sample(
     finally:
         venv.close()
     base = np.array(kept["base"][:n], int)
-    shapes = np.array([[getattr(p.heart.geometry, f.name) for f in dataclasses.fields(p.heart.geometry)] for p in patients], float)
+    shapes = np.array([p.heart.geometry.as_tuple() for p in patients], float)
     return PriorSample(np.array(kept["x"][:n]), np.array(kept["obs"][:n]), np.array(kept["hr"][:n]), base, shapes[base].reshape(len(base), -1),
                        names, tried, left_out)
 

@@ -100,6 +100,12 @@ class Posterior:
     def to_dict(self) -> dict[str, Any]:
         return {k: v for k, v in dataclasses.asdict(self).items() if k != "samples"}
 
+    @property
+    def weights_ess(self) -> float:
+        """An importance-weighted posterior's effective sample size of its weights (one number,
+        :attr:`ess` of every parameter); NaN for the other samplers."""
+        return next(iter(self.ess.values())) if self.sampler == "importance" else float("nan")
+
     def widths(self) -> dict[str, float]:
         """Width of each 90 % interval as a fraction of the parameter's identification bound
         (on its log scale for log axes), so widths compare across parameters and data sets."""

@@ -59,6 +59,20 @@ def test_training_pairs_come_from_the_prior_with_failures_counted_by_status(data
     assert training["best_validation_loss"] == min(training["validation_loss"]) < training["validation_loss"][0]
 
 
+def test_learning_rate_decays_after_each_plateau_without_improvement(data):
+    """The rate starts at the given one and halves exactly when the validation loss has not improved
+    for a multiple of ``plateau`` epochs; training stopped at ``patience`` stale epochs, so after
+    three decays (plateau 3, patience 10)."""
+    training = data[2].meta["training"]
+    rates, val = np.array(training["learning_rates"]), np.array(training["validation_loss"])
+    assert rates[0] == training["learning_rate"] and training["plateau"] == 3 and training["decay"] == 0.5
+    for i in range(len(rates) - 1):
+        stale = i - int(np.argmin(val[: i + 1]))
+        expected = rates[i] * 0.5 if stale > 0 and stale % 3 == 0 else rates[i]
+        assert rates[i + 1] == expected, (i, stale, rates[i], rates[i + 1])
+    assert len(rates) < 150 and np.count_nonzero(np.diff(rates)) >= 3
+
+
 def test_tiny_estimator_is_loosely_calibrated_on_held_out_truths(data):
     """90 % intervals of held-out prior truths (noisy observations, random masks) hold about 90 %
     of them: each parameter between 0.7 and 1, and all together between 0.8 and 0.98 (the tiny
