@@ -2,7 +2,7 @@
 
     python scripts/train_amortised.py [--pairs 1000000] [--sim-seconds 240] [--batch 256] [--chunk 5000] [--draws FILE]
         [--bases normal heart_failure] [--extra-draws FILE ...] [--copies 1] [--train-seconds 150] [--plateau 3] [--decay 0.5]
-        [--patience 10] [--flow-layers 6] [--nn-width 64] [--out optim/data/amortised.npz]
+        [--patience 10] [--flow-layers 6] [--nn-width 128] [--out optim/data/amortised.npz]
 
 Simulates (parameters, observation) pairs from optim.identify.posterior's prior
 (`optim.amortised.simulate`, over the heart kinds ``--bases``: base presets, and ``anatomy`` for
@@ -56,7 +56,7 @@ def main() -> None:
     parser.add_argument("--bases", nargs="+", default=list(amortised.BASES), choices=amortised.KINDS,
                         help="heart kinds of the simulated pairs (default: %(default)s)")
     parser.add_argument("--extra-draws", nargs="*", default=[], metavar="FILE", help="more pairs to train on, read only")
-    parser.add_argument("--copies", type=int, default=1, help="uses of each pair, with fresh noise and masks (default %(default)s)")
+    parser.add_argument("--copies", type=int, default=1, help="uses of each pair per epoch, each with fresh noise and masks (default %(default)s)")
     parser.add_argument("--train-seconds", type=float, default=150.0, help="time budget of the training (s, default %(default)s)")
     parser.add_argument("--batch-size", type=int, default=512, help="training minibatch (default %(default)s)")
     parser.add_argument("--learning-rate", type=float, default=1e-3, help="Adam's initial learning rate (default %(default)s)")
