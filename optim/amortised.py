@@ -618,13 +618,13 @@ def train(
             "prior": _prior_meta(kinds, heart_rate), "noise": dict(zip(OBSERVED, map(float, sigma))),
             "architecture": dataclasses.asdict(architecture)}
     estimator = Estimator(architecture.build(seed), architecture, arrays, meta)
-    theta, cond = (z - arrays["theta_mean"]) / arrays["theta_sd"], estimator.condition(obs, hr, geometry)
+    theta, val_cond = (z - arrays["theta_mean"]) / arrays["theta_sd"], estimator.condition(obs[:n_val], hr[:n_val], geometry[:n_val])
 
     def fresh_condition(generator: np.random.Generator) -> np.ndarray:
         return estimator.condition(_noisy_masked(clean[n_val:], sigma, generator), hr[n_val:], geometry[n_val:])
 
     started = time.perf_counter()
-    flow, losses = _fit(estimator.flow, (theta[n_val:], fresh_condition), (theta[:n_val], cond[:n_val]), seed=seed, batch_size=batch_size,
+    flow, losses = _fit(estimator.flow, (theta[n_val:], fresh_condition), (theta[:n_val], val_cond), seed=seed, batch_size=batch_size,
                         learning_rate=learning_rate, max_epochs=max_epochs, patience=patience, plateau=plateau, decay=decay, max_seconds=max_seconds,
                         progress=progress)
     seconds = time.perf_counter() - started
