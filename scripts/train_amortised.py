@@ -2,7 +2,7 @@
 
     python scripts/train_amortised.py [--pairs 1000000] [--sim-seconds 240] [--batch 256] [--chunk 5000] [--draws FILE]
         [--bases normal heart_failure] [--extra-draws FILE ...] [--copies 1] [--train-seconds 150] [--plateau 3] [--decay 0.5]
-        [--patience 10] [--flow-layers 6] [--nn-width 128] [--out optim/data/amortised.npz]
+        [--patience 10] [--flow-layers 6] [--nn-width 128] [--common-share 0.5] [--out optim/data/amortised.npz]
 
 Simulates (parameters, observation) pairs from optim.identify.posterior's prior
 (`optim.amortised.simulate`, over the heart kinds ``--bases``: base presets, and ``anatomy`` for
@@ -16,7 +16,8 @@ apart, by two processes, one per core. Chunk k uses seed ``--seed + 1 + k``; the
 of the calibration use seeds from 1000 on, so give two simulations far-apart ``--seed``s.
 ``--train-seconds 0`` only simulates. Trains the flow (``--train-seconds`` at most, early stopping on the validation loss, the
 learning rate times ``--decay`` after every ``--plateau`` epochs without improvement; each pair
-``--copies`` times per epoch, with fresh noise and masks every epoch) and saves the artefact to ``--out``.
+``--copies`` times per epoch, with fresh noise and masks every epoch, a share ``--common-share`` of them
+the target sets patients carry, optim.amortised.COMMON_MASKS) and saves the artefact to ``--out``.
 The JSON gives the pairs, uniform draws tried, those left out by reason, the chunks' seconds,
 simulated pairs per second (median over the chunks after the first, which compiles the env),
 the training time and the validation loss, the artefact's path, the machine and the command.
@@ -65,6 +66,8 @@ def main() -> None:
     parser.add_argument("--patience", type=int, default=10, help="epochs without improvement before stopping (default %(default)s)")
     parser.add_argument("--flow-layers", type=int, default=amortised.Architecture.flow_layers, help="coupling layers (default %(default)s)")
     parser.add_argument("--nn-width", type=int, default=amortised.Architecture.nn_width, help="conditioner MLP width (default %(default)s)")
+    parser.add_argument("--common-share", type=float, default=amortised.COMMON_SHARE,
+                        help="share of the training rows masked as patients are (optim.amortised.COMMON_MASKS; default %(default)s)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--code-version", default=None, help="code version for the metadata (default: lvenv's version and git commit)")
     parser.add_argument("--out", default=str(amortised.DEFAULT_ARTEFACT), help="artefact path (default %(default)s)")
@@ -106,6 +109,7 @@ def main() -> None:
     architecture = amortised.Architecture(flow_layers=a.flow_layers, nn_width=a.nn_width)
     estimator = amortised.train(draws, bases=bases, architecture=architecture, seed=a.seed, copies=a.copies, batch_size=a.batch_size,
                                 learning_rate=a.learning_rate, plateau=a.plateau, decay=a.decay, patience=a.patience, max_seconds=a.train_seconds,
+                                common_share=a.common_share,
                                 code_version=a.code_version, progress=_epoch_done)
     path = amortised.save(estimator, a.out)
     training = estimator.meta["training"]

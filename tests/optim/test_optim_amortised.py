@@ -16,7 +16,7 @@ from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS
 from lvenv.patients import Patient, builtin
 from lvenv.status import STATUS
 from lvenv.validation import InputError
-from optim import amortised
+from optim import amortised, cohort
 from optim.identify import NOISE, Posterior, PriorSample, amortised as amortised_posteriors, identify_patients, measurement_sd
 from optim.identify.density import ARRAYS
 
@@ -45,6 +45,26 @@ def test_validation_pairs_have_no_copy_in_training():
     assert n_plain == 10 and np.array_equal(plain, np.random.default_rng(0).permutation(n))
 
 
+def test_a_share_of_training_masks_are_the_target_sets_patients_carry():
+    """Each of COMMON_MASKS is the mask of share/3 of the rows plus its chance under independent
+    drops (binomial bounds at 5 sd); the others drop each target with MISSING. The sets are the
+    built-in patients' and a cohort report's own targets, and all six."""
+    n, share = 60_000, 0.5
+    observed = np.isfinite(amortised._noisy_masked(np.ones((n, 6)), np.zeros(6), np.random.default_rng(0), share))
+    drop = amortised.MISSING
+    for targets in amortised.COMMON_MASKS:
+        k = len(targets)
+        expected = share / len(amortised.COMMON_MASKS) + (1 - share) * (1 - drop) ** k * drop ** (6 - k)
+        frequency = np.mean((observed == np.isin(amortised.OBSERVED, targets)).all(axis=1))
+        assert abs(frequency - expected) < 5 * np.sqrt(expected * (1 - expected) / n), (targets, frequency, expected)
+    alone = np.isfinite(amortised._noisy_masked(np.ones((n, 6)), np.zeros(6), np.random.default_rng(0), 0.0))
+    assert abs(alone.mean() - (1 - drop)) < 0.01 and alone.any(axis=1).all()
+    assert set(amortised.COMMON_MASKS[0]) == set(builtin("normal").targets) == set(amortised.HELD_OUT_TARGETS)
+    row = {"id": "r", "EF_pct": "55", "ET_ms": "290", "IVRT_ms": "80", "SBP_mmHg": "120", "DBP_mmHg": "80", "HR_bpm": "60"}
+    assert set(amortised.COMMON_MASKS[1]) == set(cohort._patient(row, builtin("normal").heart).targets)
+    assert set(amortised.COMMON_MASKS[2]) == set(amortised.OBSERVED)
+
+
 def test_training_pairs_come_from_the_prior_with_failures_counted_by_status(data):
     draws, _, estimator = data
     assert draws.parameters.shape == (TRAIN + HELD_OUT, 6) and draws.observations.shape == (TRAIN + HELD_OUT, len(amortised.OBSERVED))
@@ -56,6 +76,7 @@ def test_training_pairs_come_from_the_prior_with_failures_counted_by_status(data
     assert sum(draws.left_out.values()) + len(draws.parameters) <= draws.tried < sum(draws.left_out.values()) + len(draws.parameters) + 128
     training = estimator.meta["training"]
     assert training["pairs"] == TRAIN and np.isfinite(training["best_validation_loss"])
+    assert training["masks"] == {"missing": amortised.MISSING, "common": [list(t) for t in amortised.COMMON_MASKS], "common_share": amortised.COMMON_SHARE}
     assert training["best_validation_loss"] == min(training["validation_loss"]) < training["validation_loss"][0]
 
 
