@@ -2,7 +2,7 @@
 
     python scripts/train_amortised.py [--pairs 1000000] [--sim-seconds 240] [--batch 256] [--chunk 5000] [--draws FILE]
         [--bases normal heart_failure] [--extra-draws FILE ...] [--copies 1] [--train-seconds 150] [--plateau 3] [--decay 0.5]
-        [--patience 10] [--flow-layers 6] [--nn-width 128] [--common-share 0.5] [--out optim/data/amortised.npz]
+        [--patience 10] [--flow-layers 6] [--nn-width 128] [--common-share 0.8] [--out optim/data/amortised.npz]
 
 Simulates (parameters, observation) pairs from optim.identify.posterior's prior
 (`optim.amortised.simulate`, over the heart kinds ``--bases``: base presets, and ``anatomy`` for
