@@ -132,7 +132,7 @@ MISSING = 0.3
 HELD_OUT_TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
 #: The target sets patients carry, each given to a share of the training rows (module docstring):
 #: the built-in patients' (:data:`HELD_OUT_TARGETS`), a cohort report's (its required columns:
-#: EF, ET, IVRT and the cuff's two, :data:`optim.cohort.REQUIRED`) and all six.
+#: EF, ET, IVRT and the cuff's two, ``optim.cohort.REQUIRED``) and all six.
 COMMON_MASKS = (HELD_OUT_TARGETS, ("EF", "ET", "IVRT", "P_ao_dia", "P_ao_mean"), OBSERVED)
 #: Default share of the training rows whose mask is one of :data:`COMMON_MASKS`.
 COMMON_SHARE = 0.8
