@@ -11,7 +11,10 @@ The candidates (`CANDIDATES`):
   times, centred on their median (`lvenv.multielement.Arrangement.onsets`): the early cells
   stretch the late ones, which then pull harder (length dependence) and relax later, as the
   wall's most loaded points do (`scripts/wall_diagnosis.py`);
-* **parallel-onsets**: the same 5 onsets with the cells in parallel (sharing the volume).
+* **parallel-onsets**: the same 5 onsets with the cells in parallel (sharing the volume);
+* **series3-onsets**: 3 cells in series with onsets at the 5, 50 and 95 % quantiles: fewer
+  cells cost less per beat (`scripts/bench_candidates.py`), which the issue's cost goal (≤ 4×
+  the single cell) needs.
 
 The anatomy sets the onsets (`fe_oracle.activation.activation_quantiles` on its oracle mesh:
 meshing and the eikonal solve, seconds, no mechanics). Training refits only {μ1, μ2, γ, delay}
@@ -57,37 +60,45 @@ from optim import campaign, congruency  # noqa: E402
 from optim.studies import UNSEEN, generalisation  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
-#: Quantiles of the activation times the 5 cells start at.
-ONSET_QUANTILES = (0.05, 0.275, 0.5, 0.725, 0.95)
-CANDIDATES = ("single", "series-onsets", "parallel-onsets")
+#: The multi-element candidates: name → (arrangement kind, cells).
+ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), "series3-onsets": ("series", 3)}
+CANDIDATES = ("single", *ARRANGED)
+#: The cells start at the wall's activation times at these quantiles, evenly spaced from the
+#: first to the last, per cell count (5 cells: 5, 27.5, 50, 72.5 and 95 %).
+ONSET_RANGE = (0.05, 0.95)
 #: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
 GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
 TRAINED = (*congruency.ACTIVE_NAMES, "delay")
 
 
-def onsets(data: congruency.OracleData) -> tuple[float, ...]:
-    """The cells' onsets relative to the LO delay (s): the activation times of ``data``'s wall at
-    :data:`ONSET_QUANTILES`, less their median."""
-    q = activation_quantiles(data.geometry, data.beats[2].metadata["mesh_size_mm"], ONSET_QUANTILES)
+def onset_quantiles(cells: int) -> tuple[float, ...]:
+    """The activation-time quantiles ``cells`` cells start at (:data:`ONSET_RANGE`)."""
+    return tuple(float(q) for q in np.linspace(*ONSET_RANGE, cells))
+
+
+def onsets(data: congruency.OracleData, cells: int = 5) -> tuple[float, ...]:
+    """The onsets of ``cells`` cells relative to the LO delay (s): the activation times of
+    ``data``'s wall at :func:`onset_quantiles`, less their median."""
+    q = activation_quantiles(data.geometry, data.beats[2].metadata["mesh_size_mm"], onset_quantiles(cells))
     return tuple(float(x) for x in q - np.median(q))
 
 
-def arrangement(name: str, shifts: tuple[float, ...], lo: LOParams) -> Arrangement | None:
-    """The multi-element arrangement of candidate ``name`` with onsets ``shifts`` (None: the single cell)."""
+def arrangement(name: str, data: congruency.OracleData, lo: LOParams) -> Arrangement | None:
+    """The multi-element arrangement of candidate ``name`` with ``data``'s wall's onsets (None: the single cell)."""
     if name == "single":
         return None
-    if name == "series-onsets":
-        return Arrangement("series", len(shifts), spread=(1.0, 1.0), onsets=shifts)
-    return Arrangement("parallel", len(shifts), spread=(lo.mu1, lo.mu1), onsets=shifts)
+    kind, cells = ARRANGED[name]
+    spread = (1.0, 1.0) if kind == "series" else (lo.mu1, lo.mu1)
+    return Arrangement(kind, cells, spread=spread, onsets=onsets(data, cells))
 
 
-def train(data: congruency.OracleData, trained: LOParams, names, budget: int, shifts: tuple[float, ...]) -> dict:
-    """Each candidate of ``names`` on ``data`` with the cells' onsets ``shifts`` (:func:`onsets`),
-    from the single cell's ``trained`` maps: name → (maps, C per training beat, arrangement, seconds)."""
+def train(data: congruency.OracleData, trained: LOParams, names, budget: int) -> dict:
+    """Each candidate of ``names`` on ``data`` (its wall's onsets, :func:`arrangement`), from the
+    single cell's ``trained`` maps: name → (maps, C per training beat, arrangement, seconds)."""
     out = {}
     for name in names:
         t0 = time.perf_counter()
-        arr = arrangement(name, shifts, trained)
+        arr = arrangement(name, data, trained)
         if arr is None:
             lo, c = trained, congruency.run_congruency(data, [trained])[0]
         else:
@@ -114,15 +125,14 @@ def dataset_mode(args, command: str) -> dict:
     for row in rows:
         data = campaign.oracle_data(campaign.DATASET, row["id"])
         trained = LOParams(**{f.name: row[f.name] for f in dataclasses.fields(LOParams)})
-        shifts = onsets(data)
-        fits = train(data, trained, args.candidates, args.budget, shifts)
-        results.append({"id": row["id"], "onsets_ms": [1000 * x for x in shifts],
+        fits = train(data, trained, args.candidates, args.budget)
+        results.append({"id": row["id"], "onsets_ms": [1000 * x for x in onsets(data)],
                         **{name: _summary(lo, c, s) for name, (lo, c, _, s) in fits.items()}})
     medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
     lines = [f"Made by `{command}`: each candidate trained on each anatomy's own FE training beats (campaign dataset, "
              "h = 6 mm, dt = 5 ms; no FE run). C on the training beats, in %.", "",
              "Median over the anatomies: " + ", ".join(f"{n} {100 * m:.2f} %" for n, m in medians.items()) + ".", "",
-             "| anatomy | onsets (ms) | " + " | ".join(args.candidates) + " |", "|---|---|" + "---|" * len(args.candidates)]
+             "| anatomy | 5 cells' onsets (ms) | " + " | ".join(args.candidates) + " |", "|---|---|" + "---|" * len(args.candidates)]
     lines += [f"| {r['id']} | {', '.join(f'{x:+.0f}' for x in r['onsets_ms'])} | " + " | ".join(f"{100 * r[n]['C']:.2f}" for n in args.candidates) + " |"
               for r in results]
     (args.out / "candidates_dataset.md").write_text("\n".join(lines) + "\n")
@@ -137,7 +147,7 @@ def hearts_mode(args, command: str) -> dict:
     for heart_name in args.hearts:
         heart = getattr(presets, heart_name)()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
-        fits = train(data, builtin(heart_name).lo, args.candidates, args.budget, onsets(data))
+        fits = train(data, builtin(heart_name).lo, args.candidates, args.budget)
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
         for name, (lo, c, arr, seconds) in fits.items():
@@ -186,7 +196,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python scripts/candidate_study.py " + " ".join(sys.argv[1:])
     result = dataset_mode(args, command) if args.mode == "dataset" else hearts_mode(args, command)
-    print(json.dumps({"mode": args.mode, "budget": args.budget, "onset_quantiles": ONSET_QUANTILES, **result}, indent=1, default=float))
+    print(json.dumps({"mode": args.mode, "budget": args.budget, "onset_quantiles": {n: onset_quantiles(c) for n, (_, c) in ARRANGED.items()}, **result}, indent=1, default=float))
 
 
 if __name__ == "__main__":
