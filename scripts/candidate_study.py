@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import pathlib
 import sys
@@ -52,6 +53,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from fe_oracle.activation import activation_quantiles  # noqa: E402
 from lvenv import presets  # noqa: E402
+from lvenv.geometry import Geometry  # noqa: E402
 from lvenv.multielement import Arrangement  # noqa: E402
 from lvenv.params import LOParams  # noqa: E402
 from lvenv.plots import generalisation_figure  # noqa: E402
@@ -79,7 +81,13 @@ def onset_quantiles(cells: int) -> tuple[float, ...]:
 def onsets(data: congruency.OracleData, cells: int = 5) -> tuple[float, ...]:
     """The onsets of ``cells`` cells relative to the LO delay (s): the activation times of
     ``data``'s wall at :func:`onset_quantiles`, less their median."""
-    q = activation_quantiles(data.geometry, data.beats[2].metadata["mesh_size_mm"], onset_quantiles(cells))
+    return _onsets(data.geometry, data.beats[2].metadata["mesh_size_mm"], cells)
+
+
+@functools.cache
+def _onsets(geometry: Geometry, mesh_size_mm: float, cells: int) -> tuple[float, ...]:
+    """:func:`onsets`, computed once per wall and cell count (meshing and an eikonal solve, seconds)."""
+    q = activation_quantiles(geometry, mesh_size_mm, onset_quantiles(cells))
     return tuple(float(x) for x in q - np.median(q))
 
 
