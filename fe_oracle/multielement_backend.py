@@ -42,7 +42,7 @@ import lvenv  # noqa: F401  (float64)
 from lvenv import coupling, multielement, presets
 from lvenv.circulation import beat_period
 from lvenv.geometry import Geometry, cavity_volume
-from lvenv.params import CellParams, Circulation, Heart, LOParams
+from lvenv.params import Arrangement, CellParams, Circulation, Heart, LOParams
 
 from fe_oracle.result import OracleDidNotConverge
 
@@ -56,9 +56,9 @@ MULTIELEMENT_METADATA = ("arrangement", "n_elements", "spread", "lo", "constrain
 NEWTON_TOL = 1e-10
 
 
-def arrangement(kind, n_elements) -> multielement.Arrangement:
-    """Validated :class:`~lvenv.multielement.Arrangement` (``None``: parallel, 256 elements)."""
-    return multielement.Arrangement("parallel" if kind is None else kind, 256 if n_elements is None else n_elements)
+def arrangement(kind, n_elements) -> Arrangement:
+    """Validated :class:`~lvenv.params.Arrangement` (``None``: parallel, 256 elements)."""
+    return Arrangement("parallel" if kind is None else kind, 256 if n_elements is None else n_elements)
 
 
 def default_lo(geometry: Geometry) -> LOParams:
@@ -67,7 +67,7 @@ def default_lo(geometry: Geometry) -> LOParams:
     return trained.get(geometry, LOParams())
 
 
-def _metadata(geometry: Geometry, arr: multielement.Arrangement, lo: LOParams, t0: float, **extra) -> dict:
+def _metadata(geometry: Geometry, arr: Arrangement, lo: LOParams, t0: float, **extra) -> dict:
     return dict(
         V0_analytic_ml=cavity_volume(geometry),
         arrangement=arr.kind,
@@ -79,7 +79,7 @@ def _metadata(geometry: Geometry, arr: multielement.Arrangement, lo: LOParams, t
     )
 
 
-def run_passive(geometry: Geometry, arr: multielement.Arrangement, lo: LOParams, pressures):
+def run_passive(geometry: Geometry, arr: Arrangement, lo: LOParams, pressures):
     """Passive inflation through ``pressures`` (kPa, increasing from 0). Returns (traces, metadata, log)."""
     t0 = time.perf_counter()
     pressures = np.asarray(pressures, float)
@@ -95,7 +95,7 @@ def run_passive(geometry: Geometry, arr: multielement.Arrangement, lo: LOParams,
     return traces, _metadata(geometry, arr, lo, t0, solves=len(pressures), newton_iterations=0), log
 
 
-def run_beat(geometry: Geometry, circ: Circulation, cell: CellParams, arr: multielement.Arrangement, lo: LOParams, dt: float, beats: int, *, duration: float | None = None):
+def run_beat(geometry: Geometry, circ: Circulation, cell: CellParams, arr: Arrangement, lo: LOParams, dt: float, beats: int, *, duration: float | None = None):
     """Coupled run over ``beats`` beats (or ``duration`` s). Returns (traces, metadata, log)."""
     t0 = time.perf_counter()
     period = float(beat_period(circ))

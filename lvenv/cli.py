@@ -58,6 +58,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lvenv import interrupt, jitcache, plots, presets
+from lvenv.presets import LO_MODELS
 from lvenv.geometry import cavity_volume
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.metrics import SUMMARY_NAMES, display, header
@@ -144,6 +145,11 @@ def _parse_settings(items: Sequence[str]) -> dict[str, float]:
             raise click.BadParameter(f"{name} = {text!r} must be finite", param_hint="--set")
         out[name] = value
     return out
+
+
+def _model_option(command):
+    return click.option("--model", type=click.Choice(tuple(LO_MODELS)), default=None,
+                        help="LO heart model of a built-in patient (lvenv.presets.LO_MODELS) [default: single]")(command)
 
 
 def _plot_suffix(ctx, param, value):
@@ -243,13 +249,16 @@ def presets_command(max_beats: int, as_json: bool) -> int:
 @click.option("--max-beats", type=click.IntRange(1, MAX_BEATS), default=200, show_default=True, help="beats to reach steady state, at most")
 @click.option("--steps-per-beat", type=click.IntRange(MIN_STEPS_PER_BEAT, MAX_STEPS_PER_BEAT), default=1000, show_default=True, help="ROS2 steps per cardiac cycle")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the PV loop and traces of the last beat (.png or .pdf)")
+@_model_option
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of a table")
-def simulate_command(preset, patient_file, condition, settings, beats, max_beats, steps_per_beat, plot_path, as_json) -> int:
+def simulate_command(preset, patient_file, condition, settings, beats, max_beats, steps_per_beat, plot_path, model, as_json) -> int:
     """Simulate one heart with parameters changed by --set NAME=VALUE."""
     if preset is not None and patient_file is not None:
         raise click.UsageError("give --preset or --patient, not both")
     name = patient_file or preset or "normal"
-    heart = Patient.from_json(patient_file).heart if patient_file else builtin(name).heart
+    heart = _patient_arg(preset or "normal", model).heart if patient_file is None else _patient_arg(patient_file, model).heart
+    if model not in (None, "single"):
+        name = f"{name} ({model})"
     if condition:
         heart = presets.training_condition(condition, heart)
     heart = heart.replace(**_parse_settings(settings))
@@ -298,9 +307,14 @@ def reach_command(preset: str, seed: int, budget: int, as_json: bool) -> int:
     return EXIT_OK if ok else EXIT_FAILED
 
 
-def _patient_arg(text: str) -> Patient:
-    """A built-in patient name or the path of a patient JSON record."""
-    return builtin(text) if text in BUILTIN else Patient.from_json(text)
+def _patient_arg(text: str, model: str | None = None) -> Patient:
+    """A built-in patient name (its heart of the LO heart ``model``, default the single cell) or
+    the path of a patient JSON record (which carries its own model: ``model`` must be None)."""
+    if text in BUILTIN:
+        return builtin(text, model or "single")
+    if model is not None:
+        raise click.UsageError(f"--model {model}: a patient record carries its own LO heart model (its \"elements\" field); --model is for built-in patients")
+    return Patient.from_json(text)
 
 
 def _parameter_table(parameters: dict[str, float]) -> Table:
@@ -395,8 +409,10 @@ def _posterior_table(identified) -> Table:
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--steps-per-beat", type=click.IntRange(MIN_STEPS_PER_BEAT, MAX_STEPS_PER_BEAT), default=500, show_default=True,
               help="ROS2 steps per cardiac cycle of the fixed-step simulations (lm, the fitted beat, --scheme fixed)")
-@click.option("--scheme", type=click.Choice(SCHEMES), default=ENV_SCHEME, show_default=True,
-              help="integration scheme of the optimisers' env: step-size control, or --steps-per-beat equal steps")
+@click.option("--scheme", type=click.Choice(SCHEMES), default=None,
+              help=f"integration scheme of the optimisers' env: step-size control, or --steps-per-beat equal steps "
+                   f"[default: {ENV_SCHEME}; fixed for a multi-element heart]")
+@_model_option
 @click.option("--plausibility/--no-plausibility", default=True, show_default=True,
               help="keep mean atrial pressure and EDP within 4–25 mmHg in the objective (lvenv.plausibility)")
 @click.option("--identifiability", is_flag=True, help="also report the sensitivity at the fit (autodiff): singular values and null directions")
@@ -412,7 +428,7 @@ def _posterior_table(identified) -> Table:
               help="write the best mismatch against evaluations (.png or .pdf)")
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
-def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, plausibility, identifiability, report_dir, map_draws,
+def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, model, plausibility, identifiability, report_dir, map_draws,
                 fidelity, fidelity_mesh, plot_path, convergence_path, posterior, n_samples, refine, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets.
     A record may give an imaged geometry to unload and take its maps from the anatomy regression
@@ -421,7 +437,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     from optim.minimize import minimize
 
     n_samples, importance = _check_posterior_options(posterior, n_samples, refine)
-    record = _patient_arg(patient)
+    record = _patient_arg(patient, model)
     if map_draws == 1:
         raise click.UsageError("--map-draws needs at least 2 draws (0: no refits)")
     if map_draws:

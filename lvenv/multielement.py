@@ -76,6 +76,14 @@ choice, order 2 for any matrix), and f_t comes from the calcium rate.
 
 Valve events and beat metrics use the LO heart's detector (:mod:`lvenv.events`). Status codes
 are :mod:`lvenv.status`'s.
+
+**A first-class LO heart.** A :class:`~lvenv.params.Heart` whose ``elements`` is an
+:class:`~lvenv.params.Arrangement` is this model everywhere a Heart goes: :func:`beat` integrates
+one beat from a flat state (:func:`flatten`, ``7 n + 4`` rows), and the beat loops of
+:mod:`lvenv.simulation` (steady state, Anderson acceleration, blocks and devices), and through
+them :func:`lvenv.simulate`, the env and :func:`lvenv.jacobian`, call it for such a heart
+(:mod:`lvenv.lo_model`). :func:`simulate` here runs a given number of beats and records every
+beat's traces, the constraint residual and the stretch range, for studies of the model itself.
 """
 
 from __future__ import annotations
@@ -90,8 +98,8 @@ import numpy as np
 from lvenv import cell, circulation, coupling, events, model, status
 from lvenv.integrator import GAMMA, is_zero, lu_factor, lu_solve
 from lvenv.metrics import METRIC_NAMES
-from lvenv.params import Heart, LOParams, as_batch, ranges
-from lvenv.validation import choice, integer, real
+from lvenv.params import ARRANGEMENTS, DEFAULT_SPREAD, MAX_ELEMENTS, MAX_ONSET_S, Arrangement, Heart, LOParams, as_batch
+from lvenv.validation import InputError, integer, real
 
 __all__ = [
     "ARRANGEMENTS",
@@ -106,79 +114,36 @@ __all__ = [
     "initial_state",
     "run",
     "run_jit",
+    "beat",
+    "flatten",
+    "unflatten",
+    "n_states",
+    "circulation_index",
+    "NEWTON_TOL",
     "simulate",
     "passive_volume",
     "zeta",
 ]
 
-ARRANGEMENTS = ("parallel", "series")
-#: Default range of the per-element value: μ1_ξ (parallel) or the weight w_ξ (series).
-DEFAULT_SPREAD = {"parallel": (0.01, 0.179), "series": (0.6, 1.0)}
-#: Largest number of elements accepted at the Python boundary.
-MAX_ELEMENTS = 4096
-#: Largest magnitude of an element's onset relative to the LO delay (s).
-MAX_ONSET_S = 0.3
-_W_RANGE = (1e-3, 10.0)  # allowed series weights w_ξ (1)
 _ZS, _ZW = cell.STATE_NAMES.index("zeta_s"), cell.STATE_NAMES.index("zeta_w")
 _NEWTON_MAX_IT = 20
 _N_GLOBAL = 3  # V, P_c, P_at
 
 
 @dataclasses.dataclass(frozen=True)
-class Arrangement:
-    """How the elements are arranged: ``kind`` ∈ {"parallel", "series"}, ``n_elements``, the
-    ``spread`` of μ1_ξ (parallel) or w_ξ (series), linear over [spread[0], spread[1]], and the
-    elements' calcium ``onsets`` (s, relative to the LO delay; ``None``: all 0).
+class ElementParams(model.ModelParams):
+    """What the jitted core needs: V0 (ml) and the three parts per member ``(B,)`` (as
+    :class:`lvenv.model.ModelParams`, whose ``get`` and ``replace`` it shares), the per-element
+    μ1_ξ, w_ξ and calcium onset (s, relative to the LO delay) ``(n, B)``, and the arrangement's
+    ``kind`` (static)."""
 
-    ``spread=None`` takes :data:`DEFAULT_SPREAD`. Validated on construction (``ValueError``
-    naming the field, the value and what is allowed).
-    """
-
-    kind: str
-    n_elements: int = 256
-    spread: tuple[float, float] | None = None
-    onsets: tuple[float, ...] | None = None
-
-    def __post_init__(self):
-        choice("arrangement", self.kind, ARRANGEMENTS)
-        object.__setattr__(self, "n_elements", integer("n_elements", self.n_elements, 1, MAX_ELEMENTS))
-        spread = DEFAULT_SPREAD[self.kind] if self.spread is None else self.spread
-        if np.ndim(spread) != 1 or len(spread) != 2:
-            raise ValueError(f"spread = {spread!r} must be a pair (low, high)")
-        lo, hi = (ranges()["mu1"][:2] if self.kind == "parallel" else _W_RANGE)
-        name = "spread (μ1_ξ)" if self.kind == "parallel" else "spread (w_ξ)"
-        low = real(f"{name}[0]", spread[0], lo, hi)
-        high = real(f"{name}[1]", spread[1], low, hi)
-        object.__setattr__(self, "spread", (low, high))
-        if self.onsets is not None:
-            if np.ndim(self.onsets) != 1 or len(self.onsets) != self.n_elements:
-                raise ValueError(f"onsets = {self.onsets!r} must give one onset (s) per element, {self.n_elements} in all")
-            object.__setattr__(self, "onsets", tuple(real(f"onsets[{i}]", x, -MAX_ONSET_S, MAX_ONSET_S) for i, x in enumerate(self.onsets)))
-
-    def element_onsets(self) -> np.ndarray:
-        """Onset of each element relative to the LO delay (s), shape ``(n_elements,)``."""
-        return np.zeros(self.n_elements) if self.onsets is None else np.array(self.onsets, float)
-
-    def element_values(self) -> np.ndarray:
-        """μ1_ξ (parallel) or w_ξ (series), shape ``(n_elements,)``."""
-        lo, hi = self.spread
-        frac = np.linspace(0.0, 1.0, self.n_elements) if self.n_elements > 1 else np.array([0.5])
-        return lo + (hi - lo) * frac
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class ElementParams:
-    """What the jitted core needs: V0 (ml) and the three parts per member ``(B,)``, and the
-    per-element μ1_ξ, w_ξ and calcium onset (s, relative to the LO delay) ``(n, B)``."""
-
-    v0: jax.Array
-    lo: LOParams
-    cell: cell.CellParams
-    circ: circulation.Circulation
     mu1: jax.Array
     w: jax.Array
     onset: jax.Array
+    kind: str
+
+
+jax.tree_util.register_dataclass(ElementParams, data_fields=["v0", "lo", "cell", "circ", "mu1", "w", "onset"], meta_fields=["kind"])
 
 
 class State(NamedTuple):
@@ -193,7 +158,8 @@ class State(NamedTuple):
 
 
 def element_params(heart: Heart, arrangement: Arrangement) -> ElementParams:
-    """Host-side: a stacked, validated Heart batch and an arrangement → :class:`ElementParams`."""
+    """Host-side: a stacked, validated Heart batch and an arrangement → :class:`ElementParams`
+    (the Heart's own ``elements`` play no part)."""
     mp = model.model_params(heart)
     n_members = np.shape(mp.v0)[0]
     values = arrangement.element_values()[:, None] * np.ones(n_members)
@@ -201,8 +167,11 @@ def element_params(heart: Heart, arrangement: Arrangement) -> ElementParams:
         mu1, w = values, np.ones_like(values)
     else:
         mu1, w = np.broadcast_to(np.asarray(mp.lo.mu1, float), values.shape).copy(), values
-    onset = arrangement.element_onsets()[:, None] * np.ones(n_members)
-    return ElementParams(v0=mp.v0, lo=mp.lo, cell=mp.cell, circ=mp.circ, mu1=mu1, w=w, onset=onset)
+    onsets = arrangement.element_onsets()
+    if onsets.ndim == 2 and len(onsets) != n_members:
+        raise InputError(f"elements.onsets has {len(onsets)} rows (one per member) for a batch of {n_members} members")
+    onset = onsets.T.copy() if onsets.ndim == 2 else onsets[:, None] * np.ones(n_members)  # per member: one row each (lvenv.params.stack)
+    return ElementParams(v0=mp.v0, lo=mp.lo, cell=mp.cell, circ=mp.circ, mu1=mu1, w=w, onset=onset, kind=arrangement.kind)
 
 
 def _element_lo(p: ElementParams) -> LOParams:
@@ -220,7 +189,7 @@ def zeta(state: State, p: ElementParams) -> jax.Array:
     return _zeta_form(state.cells, lam, cell.rates(p.cell))
 
 
-def initial_state(p: ElementParams, kind: str) -> State:
+def initial_state(p: ElementParams) -> State:
     """Training-protocol initial state (DESIGN §1.2), host-side; its algebraic part is a guess.
 
     Every element at passive equilibrium with Pat — parallel: V at Ppass(V) = Pat; series: each
@@ -231,7 +200,7 @@ def initial_state(p: ElementParams, kind: str) -> State:
     as in the single-element heart).
     """
     circ = p.circ
-    if kind == "parallel":
+    if p.kind == "parallel":
         v_el = np.broadcast_to(coupling.passive_volume(circ.Pat, p.v0, p.lo), np.shape(p.mu1))
     else:
         v_el = coupling.passive_volume(np.asarray(circ.Pat) / np.asarray(p.w), p.v0, p.lo)
@@ -264,7 +233,8 @@ def _algebraic(kind: str, p: ElementParams, k: cell.Rates, cells, v, v_el, p_lv,
     """(V_ξ, P, residual max_ξ abs(P_ξ − P) (B,), Newton iterations) at differential states (cells, V).
 
     Parallel: explicit. Series: Newton from the guess (``v_el``, ``p_lv``) until the residual is
-    below ``tol`` (kPa) for every member, at most 20 iterations.
+    below ``tol`` (kPa) for every member, at most 20 iterations; a member stops at its first
+    iterate below ``tol``, however many its neighbours need.
     """
     if kind == "parallel":
         v_el = jnp.broadcast_to(v, v_el.shape)
@@ -279,15 +249,15 @@ def _algebraic(kind: str, p: ElementParams, k: cell.Rates, cells, v, v_el, p_lv,
 
     def body(c):
         v_el, p_lv, p_el, d, it = c
-        it = it + (residual(c) > tol)
+        active = residual(c) > tol  # a member that has converged stays put: its result does not depend on its neighbours
         r = p_el - p_lv
         r_m = jnp.mean(v_el, axis=0) - v
         m = jnp.mean(1.0 / d, axis=0)
         dp = (jnp.mean(r / d, axis=0) - r_m) / m
-        v_el = v_el + (dp - r) / d
-        p_lv = p_lv + dp
-        p_el, d = _element_pressures(cells, v_el, p, k)[:2]
-        return v_el, p_lv, p_el, d, it
+        v_new, p_new = v_el + (dp - r) / d, p_lv + dp
+        p_el_new, d_new = _element_pressures(cells, v_new, p, k)[:2]
+        keep = lambda new, old: jnp.where(active, new, old)
+        return keep(v_new, v_el), keep(p_new, p_lv), keep(p_el_new, p_el), keep(d_new, d), it + active
 
     p_el, d = _element_pressures(cells, v_el, p, k)[:2]
     c = jax.lax.while_loop(cond, body, (v_el, p_lv, p_el, d, jnp.zeros(v.shape, jnp.int32)))
@@ -412,7 +382,53 @@ def _stretch_range(p: ElementParams, state: State):
     return jnp.stack([jnp.min(lam, axis=0), jnp.max(lam, axis=0)])
 
 
-def run(p: ElementParams, state0: State, newton_tol, *, kind: str, steps: int, beats: int, record: bool):
+def _beat(p: ElementParams, k: cell.Rates, carry: dict, steps: int, newton_tol, record: bool, volume_trace: bool = True):
+    """One beat of ``steps`` ROS2 steps from ``carry`` (``state``, ``residual`` at its start,
+    ``residual_max``, ``iterations``, ``stretch`` so far), calcium onset at its start.
+
+    Returns ``(carry at the beat's end, metrics, valid, traces)``: the beat's metrics and whether
+    the detector found its valve cycle (:mod:`lvenv.events`), and when ``record`` the samples
+    V, P_lv, P_ao, P_c, P_at and the residual, each ``(steps + 1, B)``. Each step computes its
+    own [Ca] per element (as :func:`lvenv.simulation.beat`), so a member's arithmetic does not
+    depend on how the batch around it was compiled.
+    """
+    period = circulation.beat_period(p.circ)
+    h = period / steps
+    norm = cell.transient_norm(p.cell)
+    lo_el = dataclasses.replace(p.lo, delay=jnp.maximum(p.lo.delay + p.onset, 0.0))  # each element's onset (n, B)
+
+    def record_sample(state, res):
+        v, p_lv, p_at, p_c, p_ao = _sample(p, state)
+        return (v, p_lv, p_ao, p_c, p_at, res)
+
+    def step(c, n):
+        t0, t1 = n * h, (n + 1) * h
+        ca0, ca1 = coupling.calcium(t0, lo_el, p.cell, norm), coupling.calcium(t1, lo_el, p.cell, norm)
+        state, res, it = _step(p.kind, p, k, c["state"], h, ca0, ca1, coupling.calcium_rate(t0, lo_el, p.cell, norm), newton_tol)
+        acc = events.update(c["acc"], t1, *_sample(p, state))
+        lam = _stretch_range(p, state)
+        stretch = jnp.stack([jnp.minimum(c["stretch"][0], lam[0]), jnp.maximum(c["stretch"][1], lam[1])])
+        new = {"state": state, "acc": acc, "residual": res, "residual_max": jnp.maximum(c["residual_max"], res), "iterations": c["iterations"] + it, "stretch": stretch}
+        return new, (record_sample(state, res) if record else None)
+
+    acc0 = events.start(jnp.zeros_like(h), *_sample(p, carry["state"]), period, volume_trace)
+    out, samples = jax.lax.scan(step, dict(carry, acc=acc0), jnp.arange(steps, dtype=h.dtype))
+    metrics, valid = events.finish(out.pop("acc"), period)
+    traces = None
+    if record:
+        first = record_sample(carry["state"], carry["residual"])
+        traces = tuple(jnp.concatenate([f[None], s]) for f, s in zip(first, samples))
+    return out, metrics, valid, traces
+
+
+def _start(p: ElementParams, k: cell.Rates, state0: State, newton_tol) -> dict:
+    """:func:`_beat`'s carry at ``state0``, its algebraic part solved at its differential states."""
+    v_el, p_lv, res0, it0 = _algebraic(p.kind, p, k, state0.cells, state0.circ[0], state0.v_el, state0.p_lv, newton_tol)
+    state = State(state0.cells, state0.circ, v_el, p_lv)
+    return {"state": state, "residual": res0, "residual_max": res0, "iterations": it0, "stretch": _stretch_range(p, state)}
+
+
+def run(p: ElementParams, state0: State, newton_tol, *, steps: int, beats: int, record: bool):
     """Pure batched core: ``beats`` beats of ``steps`` ROS2 steps from ``state0`` (members ``(B,)``).
 
     Returns a dict: ``state`` (final), ``metrics`` (last beat, masked to NaN unless usable),
@@ -422,42 +438,13 @@ def run(p: ElementParams, state0: State, newton_tol, *, kind: str, steps: int, b
     ((min, max) of λ_ξ over elements and steps) and, when ``record``, ``traces``: V, P_lv,
     P_ao, P_c, P_at and the residual, each ``(beats, steps + 1, B)``.
     """
-    period = circulation.beat_period(p.circ)
-    h = period / steps
     k = cell.rates(p.cell)
-    t = jnp.arange(steps + 1, dtype=h.dtype)[:, None, None] * h
-    lo_el = dataclasses.replace(p.lo, delay=jnp.maximum(p.lo.delay + p.onset, 0.0))  # each element's onset (n, B)
-    ca, ca_rate = coupling.calcium(t, lo_el, p.cell), coupling.calcium_rate(t, lo_el, p.cell)  # (steps + 1, n, B)
-    v_el, p_lv, res0, it0 = _algebraic(kind, p, k, state0.cells, state0.circ[0], state0.v_el, state0.p_lv, newton_tol)
-    state = State(state0.cells, state0.circ, v_el, p_lv)
-
-    def record_sample(state, res):
-        v, p_lv, p_at, p_c, p_ao = _sample(p, state)
-        return (v, p_lv, p_ao, p_c, p_at, res)
 
     def one_beat(carry, _):
-        acc0 = events.start(jnp.zeros_like(h), *_sample(p, carry["state"]), period)
-
-        def step(c, xs):
-            n, ca0, ca1, dca0 = xs
-            state, res, it = _step(kind, p, k, c["state"], h, ca0, ca1, dca0, newton_tol)
-            acc = events.update(c["acc"], (n + 1) * h, *_sample(p, state))
-            lam = _stretch_range(p, state)
-            stretch = jnp.stack([jnp.minimum(c["stretch"][0], lam[0]), jnp.maximum(c["stretch"][1], lam[1])])
-            new = {"state": state, "acc": acc, "residual": res, "residual_max": jnp.maximum(c["residual_max"], res), "iterations": c["iterations"] + it, "stretch": stretch}
-            return new, (record_sample(state, res) if record else None)
-
-        xs = (jnp.arange(steps, dtype=h.dtype), ca[:-1], ca[1:], ca_rate[:-1])
-        out, samples = jax.lax.scan(step, dict(carry, acc=acc0), xs)
-        metrics, valid = events.finish(out.pop("acc"), period)
-        traces = None
-        if record:
-            first = record_sample(carry["state"], carry["residual"])
-            traces = tuple(jnp.concatenate([f[None], s]) for f, s in zip(first, samples))
+        out, metrics, valid, traces = _beat(p, k, carry, steps, newton_tol, record)
         return out, (metrics, valid, traces)
 
-    carry0 = {"state": state, "residual": res0, "residual_max": res0, "iterations": it0, "stretch": _stretch_range(p, state)}
-    carry, (metrics, valid, traces) = jax.lax.scan(one_beat, carry0, None, length=beats)
+    carry, (metrics, valid, traces) = jax.lax.scan(one_beat, _start(p, k, state0, newton_tol), None, length=beats)
     state, res, its, stats = carry["state"], carry["residual_max"], carry["iterations"], carry["stretch"]
     metrics = {name: value[-1] for name, value in metrics.items()}
     finite = jnp.all(jnp.isfinite(state.circ), axis=0) & jnp.all(jnp.isfinite(state.cells), axis=(0, 1)) & jnp.isfinite(res)
@@ -478,7 +465,56 @@ def run(p: ElementParams, state0: State, newton_tol, *, kind: str, steps: int, b
     return out
 
 
-run_jit = jax.jit(run, static_argnames=("kind", "steps", "beats", "record"))
+def n_states(n_elements: int) -> int:
+    """Length of a multi-element heart's flat state (:func:`flatten`): 7 n + 4."""
+    return 7 * n_elements + 4
+
+
+def circulation_index(n_elements: int) -> tuple[int, int, int]:
+    """Rows of V, P_c and P_at in the flat state of ``n_elements`` elements."""
+    first = cell.N_STATES * n_elements
+    return first, first + 1, first + 2
+
+
+def flatten(state: State):
+    """A :class:`State` as one array ``(7 n + 4, B)``: the cells in ζ̃ form (row c·n + ξ for cell
+    state c of element ξ), then V, P_c, P_at (:func:`circulation_index`), the element volumes
+    V_ξ and P_lv. With ``n = 1`` the first 9 rows are laid out as the single-cell heart's state
+    (:mod:`lvenv.model`), with ζ̃ in place of ζ. The form that beat loops, the env and
+    :func:`lvenv.simulate` carry."""
+    cells, glob, v_el, p_lv = state
+    xp = jnp if isinstance(cells, jax.Array) else np
+    return xp.concatenate([xp.reshape(cells, (-1,) + cells.shape[2:]), glob, v_el, p_lv[None]])
+
+
+def unflatten(y, n_elements: int) -> State:
+    """The :class:`State` of a flat state ``y`` (:func:`flatten`) of ``n_elements`` elements."""
+    n, c = n_elements, cell.N_STATES * n_elements
+    return State(cells=y[:c].reshape((cell.N_STATES, n) + y.shape[1:]), circ=y[c : c + 3], v_el=y[c + 3 : c + 3 + n], p_lv=y[c + 3 + n])
+
+
+#: Newton tolerance (kPa) on max_ξ abs(P_ξ − P) of :func:`beat`, the default of :func:`simulate`.
+NEWTON_TOL = 1e-10
+
+
+def beat(p: ElementParams, y0, steps: int, record: bool, volume_trace: bool = True):
+    """One beat of B members from flat states ``y0`` (:func:`flatten`), calcium onset at t = 0:
+    :func:`lvenv.simulation.beat` for a multi-element heart, through which every steady-state
+    loop of :mod:`lvenv.simulation` (and so :func:`lvenv.simulate`, the env and
+    :func:`lvenv.jacobian`) runs it.
+
+    Returns ``(y_end, metrics, valid, traces, on_manifold)``: the first four as that function
+    returns them (traces: V, P_lv, P_ao), and whether the equal-pressure Newton met
+    :data:`NEWTON_TOL` at every step (where not, the member left the constraint manifold: the
+    loops report it ``diverged``, as :func:`run` does).
+    """
+    k = cell.rates(p.cell)
+    carry = _start(p, k, unflatten(y0, p.mu1.shape[0]), NEWTON_TOL)
+    out, metrics, valid, traces = _beat(p, k, carry, steps, NEWTON_TOL, record, volume_trace)
+    return flatten(out["state"]), metrics, valid, None if traces is None else traces[:3], out["residual_max"] <= NEWTON_TOL
+
+
+run_jit = jax.jit(run, static_argnames=("steps", "beats", "record"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -528,14 +564,13 @@ def simulate(
         ValueError: a parameter or setting outside its allowed range (names field and value).
     """
     if not isinstance(arrangement, Arrangement):
-        raise ValueError(f"arrangement = {arrangement!r} must be an lvenv.multielement.Arrangement")
+        raise ValueError(f"arrangement = {arrangement!r} must be an lvenv.params.Arrangement")
     beats = integer("beats", beats, 1)
     steps_per_beat = integer("steps_per_beat", steps_per_beat, 10)
     newton_tol = real("newton_tol", newton_tol, 0.0, 1.0, lo_open=True)
     heart, single = as_batch(params)
     p = element_params(heart, arrangement)
-    state0 = initial_state(p, arrangement.kind)
-    out = run_jit(p, state0, newton_tol, kind=arrangement.kind, steps=steps_per_beat, beats=beats, record=bool(traces))
+    out = run_jit(p, initial_state(p), newton_tol, steps=steps_per_beat, beats=beats, record=bool(traces))
     out = jax.device_get(out)
     codes = np.asarray(out["status"])
     trace_dict = None

@@ -16,9 +16,9 @@ import jax
 import numpy as np
 
 from lvenv.geometry import Geometry, GeometryError, cavity_volume
-from lvenv.validation import InputError, real_array
+from lvenv.validation import InputError, choice, integer, real, real_array
 
-__all__ = ["LOParams", "CellParams", "Circulation", "Heart", "validate", "stack", "as_batch", "ranges", "field_names", "locate"]
+__all__ = ["LOParams", "CellParams", "Circulation", "Heart", "Arrangement", "ARRANGEMENTS", "DEFAULT_SPREAD", "MAX_ELEMENTS", "MAX_ONSET_S", "validate", "stack", "as_batch", "ranges", "field_names", "locate"]
 
 
 def _param(default: float, lo: float, hi: float, units: str, doc: str, values: tuple[float, ...] | None = None) -> Any:
@@ -103,26 +103,129 @@ class Circulation:
     closed_loop: float = _param(1.0, 0.0, 1.0, "1", "0: open loop (constant Pat, venous side at 0 kPa); 1: closed loop", values=(0.0, 1.0))
 
 
+ARRANGEMENTS = ("parallel", "series")
+#: Default range of the per-element value: μ1_ξ (parallel) or the weight w_ξ (series).
+DEFAULT_SPREAD = {"parallel": (0.01, 0.179), "series": (0.6, 1.0)}
+#: Largest number of elements accepted at the Python boundary.
+MAX_ELEMENTS = 4096
+#: Largest magnitude of an element's onset relative to the LO delay (s).
+MAX_ONSET_S = 0.3
+_W_RANGE = (1e-3, 10.0)  # allowed series weights w_ξ (1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Arrangement:
+    """A multi-element LO heart (:mod:`lvenv.multielement`, DESIGN §1.4): how its cells are
+    arranged: ``kind`` ∈ {"parallel", "series"}, ``n_elements``, the ``spread`` of μ1_ξ
+    (parallel) or w_ξ (series), linear over [spread[0], spread[1]], and the elements' calcium
+    ``onsets`` (s, relative to the LO delay; ``None``: all 0), one per element or, in a stacked
+    Heart, one row of them per member (:func:`stack` builds those rows: walls differ in their
+    onsets, and still batch together).
+
+    ``spread=None`` takes :data:`DEFAULT_SPREAD`. Validated on construction (``ValueError``
+    naming the field, the value and what is allowed). Hashable: a :class:`Heart` carries it as
+    static data (``Heart.elements``); the members of a batch share its :meth:`model_key`.
+    """
+
+    kind: str
+    n_elements: int = 256
+    spread: tuple[float, float] | None = None
+    onsets: tuple[float, ...] | tuple[tuple[float, ...], ...] | None = None
+
+    def __post_init__(self):
+        choice("arrangement", self.kind, ARRANGEMENTS)
+        object.__setattr__(self, "n_elements", integer("n_elements", self.n_elements, 1, MAX_ELEMENTS))
+        spread = DEFAULT_SPREAD[self.kind] if self.spread is None else self.spread
+        if np.ndim(spread) != 1 or len(spread) != 2:
+            raise InputError(f"spread = {spread!r} must be a pair (low, high)")
+        lo, hi = (ranges()["mu1"][:2] if self.kind == "parallel" else _W_RANGE)
+        name = "spread (μ1_ξ)" if self.kind == "parallel" else "spread (w_ξ)"
+        low = real(f"{name}[0]", spread[0], lo, hi)
+        high = real(f"{name}[1]", spread[1], low, hi)
+        object.__setattr__(self, "spread", (low, high))
+        if self.onsets is not None:
+            try:
+                shape = np.shape(self.onsets)
+            except ValueError:  # ragged rows
+                shape = None
+            n = self.n_elements
+            if shape != (n,) and not (shape is not None and len(shape) == 2 and shape[0] >= 1 and shape[1] == n):
+                raise InputError(f"onsets = {self.onsets!r} must give one onset (s) per element, {n} in all (in a stacked Heart: one such row per member)")
+            onset = lambda where, x: real(where, x, -MAX_ONSET_S, MAX_ONSET_S)
+            rows = (tuple(onset(f"onsets[{i}]", x) for i, x in enumerate(self.onsets)) if len(shape) == 1 else
+                    tuple(tuple(onset(f"onsets[{m}][{i}]", x) for i, x in enumerate(row)) for m, row in enumerate(self.onsets)))
+            object.__setattr__(self, "onsets", rows)
+
+    def model_key(self) -> tuple[str, int, tuple[float, float]]:
+        """(kind, n_elements, spread): what the members of a batch share (their onsets may differ)."""
+        return self.kind, self.n_elements, self.spread
+
+    def element_onsets(self) -> np.ndarray:
+        """Onset of each element relative to the LO delay (s), shape ``(n_elements,)``, or
+        ``(members, n_elements)`` for per-member onsets."""
+        return np.zeros(self.n_elements) if self.onsets is None else np.array(self.onsets, float)
+
+    def element_values(self) -> np.ndarray:
+        """μ1_ξ (parallel) or w_ξ (series), shape ``(n_elements,)``."""
+        lo, hi = self.spread
+        frac = np.linspace(0.0, 1.0, self.n_elements) if self.n_elements > 1 else np.array([0.5])
+        return lo + (hi - lo) * frac
+
+    def to_dict(self) -> dict[str, Any]:
+        """The arrangement as a JSON-ready object (:meth:`from_dict` reads it back)."""
+        return {"kind": self.kind, "n_elements": self.n_elements, "spread": list(self.spread),
+                "onsets": None if self.onsets is None else np.asarray(self.onsets).tolist()}
+
+    @classmethod
+    def from_dict(cls, record: Any, where: str = "elements") -> "Arrangement":
+        """An arrangement from :meth:`to_dict`'s object (``where`` names it in errors): ``kind``
+        required, ``n_elements``, ``spread`` and ``onsets`` optional; an unknown field, or a value
+        of the wrong type or out of range, raises :class:`~lvenv.validation.InputError`."""
+        if not isinstance(record, dict):
+            raise InputError(f"{where} = {record!r} must be null (the single-cell heart) or an object with the fields {_ARRANGEMENT_FIELDS}")
+        if "kind" not in record:
+            raise InputError(f"{where} lacks the field 'kind' (one of {ARRANGEMENTS})")
+        if unknown := sorted(str(k) for k in record if k not in _ARRANGEMENT_FIELDS):
+            raise InputError(f"{where} has the unknown field(s) {unknown}; known: {list(_ARRANGEMENT_FIELDS)}")
+        for name in ("spread", "onsets"):
+            if record.get(name) is not None and not isinstance(record[name], list):
+                raise InputError(f"{where}.{name} = {record[name]!r} must be a list of numbers")
+        try:
+            onsets = record.get("onsets")
+            return cls(kind=record["kind"], n_elements=record.get("n_elements", 256),
+                       spread=None if record.get("spread") is None else tuple(record["spread"]),
+                       onsets=None if onsets is None else tuple(tuple(r) if isinstance(r, list) else r for r in onsets))
+        except ValueError as err:
+            raise InputError(f"{where}: {err}") from None
+
+
+_ARRANGEMENT_FIELDS = ("kind", "n_elements", "spread", "onsets")
+
+
 @dataclasses.dataclass(frozen=True)
 class Heart:
     """One LO heart: unloaded geometry, trained LO maps, cell unit and circulation.
 
     A *stacked* Heart (every leaf an array of shape ``(batch,)``) is a batch; build one with
     :func:`stack`. ``V0`` is derived from ``geometry`` (:func:`lvenv.geometry.cavity_volume`).
+    ``elements``: ``None`` (default) for the paper's single-cell LO heart, or an
+    :class:`Arrangement` for a multi-element one (:mod:`lvenv.multielement`); every function
+    that takes a Heart simulates whichever it carries, and a batch shares one.
     """
 
     geometry: Geometry
     lo: LOParams = dataclasses.field(default_factory=LOParams)
     cell: CellParams = dataclasses.field(default_factory=CellParams)
     circulation: Circulation = dataclasses.field(default_factory=Circulation)
+    elements: Arrangement | None = None
 
     def replace(self, **changes: Any) -> "Heart":
         """Return a copy with fields changed by name, e.g. ``heart.replace(tau2=0.2, R3=0.1)``.
 
         Names are looked up in ``lo``, ``cell`` and ``circulation``; ``geometry``, ``lo``,
-        ``cell`` and ``circulation`` replace the whole part.
+        ``cell``, ``circulation`` and ``elements`` replace the whole part.
         """
-        top = {k: changes.pop(k) for k in ("geometry", "lo", "cell", "circulation") if k in changes}
+        top = {k: changes.pop(k) for k in ("geometry", "lo", "cell", "circulation", "elements") if k in changes}
         if unknown := sorted(k for k in changes if k not in _LOCATION):
             raise TypeError(f"unknown Heart parameter(s): {unknown}; known: {field_names()}")
         heart = dataclasses.replace(self, **top)
@@ -148,7 +251,7 @@ def _unflatten_geometry(_, leaves):
 
 
 jax.tree_util.register_pytree_node(Geometry, _flatten_geometry, _unflatten_geometry)
-jax.tree_util.register_dataclass(Heart, data_fields=["geometry", "lo", "cell", "circulation"], meta_fields=[])
+jax.tree_util.register_dataclass(Heart, data_fields=["geometry", "lo", "cell", "circulation"], meta_fields=["elements"])
 
 _PARTS = (("lo", LOParams), ("cell", CellParams), ("circulation", Circulation))
 _LOCATION = {f.name: part for part, cls in _PARTS for f in dataclasses.fields(cls)}
@@ -216,6 +319,9 @@ def _check(heart: Heart) -> int | None:
     a, b, c = (np.asarray(v, float) for v in (lo.a, lo.b, lo.c))
     if np.any(bad := (b < 0) & (b * b >= 3 * a * c)):
         raise InputError(f"lo.b = {float(np.ravel(b)[np.flatnonzero(bad.ravel())[0]]):g} kPa makes Ppass non-monotone for V > V0 (need b² < 3ac){_member(b, bad)}")
+    onsets = None if heart.elements is None else heart.elements.element_onsets()
+    if onsets is not None and onsets.ndim == 2 and len(onsets) != (size or 1):
+        raise InputError(f"elements.onsets has {len(onsets)} rows (one per member) for a batch of {size or 1} members")
     cavity_volumes(heart)
     return size
 
@@ -250,12 +356,25 @@ def stack(hearts: Sequence[Heart]) -> Heart:
         if not isinstance(heart, Heart):
             raise InputError(f"member {i} is a {type(heart).__name__}, not an lvenv.Heart")
         try:
-            arrays.append(_as_arrays(heart))
+            arrays.append(dataclasses.replace(_as_arrays(heart), elements=None))
         except InputError as err:
             raise InputError(f"{err} (batch member {i})") from None
-        if batch_size(arrays[-1]) is not None:
+        if batch_size(arrays[-1]) is not None or (heart.elements is not None and np.ndim(heart.elements.element_onsets()) > 1):
             raise InputError(f"member {i} is itself a stacked batch; pass single Hearts")
-    return jax.tree.map(lambda *xs: np.stack(xs), *arrays)
+    return dataclasses.replace(jax.tree.map(lambda *xs: np.stack(xs), *arrays), elements=_stacked_elements([h.elements for h in hearts]))
+
+
+def _stacked_elements(elements: Sequence[Arrangement | None]) -> Arrangement | None:
+    """The members' one LO heart model; per-member onsets where their walls' differ."""
+    first = elements[0]
+    key = lambda e: None if e is None else e.model_key()
+    for i, e in enumerate(elements):
+        if key(e) != key(first):
+            raise InputError(f"member {i} has elements = {e!r} but member 0 has {first!r}: a batch shares one LO heart model "
+                             "(kind, n_elements, spread; simulate different ones in separate batches)")
+    if first is None or all(e == first for e in elements):
+        return first
+    return dataclasses.replace(first, onsets=tuple(tuple(e.element_onsets()) for e in elements))
 
 
 def _as_arrays(heart: Heart) -> Heart:
@@ -271,9 +390,11 @@ def _as_arrays(heart: Heart) -> Heart:
         if not isinstance(obj, cls):
             raise InputError(f"heart.{part} must be an lvenv.{cls.__name__}, got {type(obj).__name__}")
         parts[part] = dataclasses.replace(obj, **{f.name: real_array(f"{part}.{f.name}", getattr(obj, f.name)) for f in dataclasses.fields(cls)})
+    if heart.elements is not None and not isinstance(heart.elements, Arrangement):
+        raise InputError(f"heart.elements must be None (the single-cell heart) or an lvenv.params.Arrangement, got {type(heart.elements).__name__}")
     g = heart.geometry
     leaves = [real_array(f"geometry.{f.name}", getattr(g, f.name)) for f in dataclasses.fields(Geometry)]
-    return Heart(geometry=jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(g), leaves), **parts)
+    return Heart(geometry=jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(g), leaves), elements=heart.elements, **parts)
 
 
 def as_batch(params: Heart | Sequence[Heart]) -> tuple[Heart, bool]:

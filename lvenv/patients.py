@@ -40,7 +40,7 @@ from lvenv import presets
 from lvenv.circulation import beat_period
 from lvenv.geometry import Geometry
 from lvenv.metrics import FRAME_NAMES, METRICS, N_FRAMES, OBS_NAMES
-from lvenv.params import CellParams, Circulation, Heart, LOParams, validate
+from lvenv.params import Arrangement, CellParams, Circulation, Heart, LOParams, validate
 from lvenv.units import mmhg_to_kpa
 from lvenv.validation import InputError, real, real_array
 
@@ -147,6 +147,7 @@ class Patient:
             "circulation": dataclasses.asdict(h.circulation),
             "targets": dict(self.targets),
             "weights": dict(self.weights),
+            **({"elements": h.elements.to_dict()} if h.elements is not None else {}),
             **({"anatomy": dict(self.anatomy)} if self.anatomy else {}),
         }
 
@@ -159,14 +160,15 @@ class Patient:
     @classmethod
     def from_dict(cls, record: dict[str, Any]) -> "Patient":
         """A patient from a record: ``name``, ``geometry`` and ``targets`` required; ``lo``
-        (numbers or ``"regression"``), ``unload``, ``cell``, ``circulation``, ``weights`` and
-        ``anatomy`` optional (``null`` means the default; module docstring)."""
+        (numbers or ``"regression"``), ``unload``, ``cell``, ``circulation``, ``elements`` (the
+        LO heart model, :meth:`lvenv.params.Arrangement.from_dict`; default the single cell),
+        ``weights`` and ``anatomy`` optional (``null`` means the default; module docstring)."""
         if not isinstance(record, dict):
             raise InputError(f"a patient record must be a JSON object, got {type(record).__name__}")
         for key in ("name", "geometry", "targets"):
             if key not in record:
                 raise InputError(f"patient record is missing the field {key!r}")
-        known = {"name", "geometry", "lo", "unload", "cell", "circulation", "targets", "weights", "anatomy"}
+        known = {"name", "geometry", "lo", "unload", "cell", "circulation", "elements", "targets", "weights", "anatomy"}
         if extra := set(record) - known:
             raise InputError(f"patient record has unknown field(s) {sorted(extra)}; known: {sorted(known)}")
         parts = {}
@@ -187,6 +189,8 @@ class Patient:
             if key == "geometry" and (missing := names - set(value)):
                 raise InputError(f"patient.geometry is missing the field(s) {sorted(missing)}")
             parts[key] = part_cls(**{k: _number(v, f"{key}.{k}") for k, v in value.items()})
+        if record.get("elements") is not None:
+            parts["elements"] = Arrangement.from_dict(record["elements"], "patient.elements")
         for key in ("targets", "weights", "anatomy"):
             if record.get(key) is not None and not isinstance(record[key], dict):
                 raise InputError(f"patient.{key} must be an object, got {type(record[key]).__name__}")
@@ -257,12 +261,13 @@ def _number(value: Any, where: str) -> float:
     return float(value)
 
 
-def builtin(name: str) -> Patient:
-    """The built-in record ``"normal"`` or ``"heart_failure"`` (illustrative targets)."""
+def builtin(name: str, model: str = "single") -> Patient:
+    """The built-in record ``"normal"`` or ``"heart_failure"`` (illustrative targets), its heart
+    the preset of the LO heart ``model`` (:data:`lvenv.presets.LO_MODELS`)."""
     if name == "normal":
-        return Patient("normal", presets.normal(), {"EF": 0.60, "ET": 0.300, "IVRT": 0.080, "P_ao_pulse": mmhg_to_kpa(45.0)})
+        return Patient("normal", presets.normal(model=model), {"EF": 0.60, "ET": 0.300, "IVRT": 0.080, "P_ao_pulse": mmhg_to_kpa(45.0)})
     if name == "heart_failure":
-        return Patient("heart_failure", presets.heart_failure(), {"EF": 0.486, "ET": 0.363, "IVRT": 0.100, "P_ao_pulse": mmhg_to_kpa(45.0)})
+        return Patient("heart_failure", presets.heart_failure(model=model), {"EF": 0.486, "ET": 0.363, "IVRT": 0.100, "P_ao_pulse": mmhg_to_kpa(45.0)})
     raise InputError(f"unknown built-in patient {name!r}; choose from {BUILTIN}")
 
 

@@ -7,6 +7,13 @@ Geometry: Table 1 unloaded configurations. LO parameters, by name (``lo=``):
   ``trained_heart_failure.json`` with their congruency and provenance, :mod:`lvenv.trained`);
 * ``"table3"``: the paper's values, trained against *their* FE model (DESIGN §1 table, "Table 3").
 
+LO heart models, by name (``model=``, :data:`LO_MODELS`): ``"single"`` (default), the paper's
+single cell; ``"series3"``, three cells in series with equal volume shares whose calcium
+transients start at the 5, 50 and 95 % quantiles of the wall's activation times
+(:mod:`lvenv.multielement`, issue 30), with its own maps trained against the same oracle runs
+(records ``trained_normal_series3.json`` and ``trained_heart_failure_series3.json``,
+:func:`optim.congruency.train_model`; ``lo="trained"`` only).
+
 Cell defaults: :class:`lvenv.params.CellParams` (README, "Cell defaults"). Circulation defaults
 (closed loop, 60 bpm): README, "Circulation defaults".
 """
@@ -16,12 +23,14 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import numpy as np
+
 from lvenv import trained
 from lvenv.geometry import Geometry
 from lvenv.params import Circulation, Heart, LOParams
-from lvenv.validation import choice
+from lvenv.validation import InputError, choice
 
-__all__ = ["normal", "heart_failure", "LO_SETS", "lo_params", "training_circulation", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
+__all__ = ["normal", "heart_failure", "LO_SETS", "LO_MODELS", "ONSET_RANGE", "onset_quantiles", "lo_params", "training_circulation", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
 
 N_UNLOADED = Geometry(Rb=35.0, L=9.6, Z=54.0, H=12.0, e=0.70, C0=-53.0)
 HF_UNLOADED = Geometry(Rb=38.0, L=10.0, Z=49.0, H=7.7, e=0.66, C0=-64.0)
@@ -41,11 +50,26 @@ TRAINING_PC0 = 10.0
 
 #: Names of the LO parameter sets.
 LO_SETS = ("trained", "table3")
+#: The LO heart models with shipped maps: name → ``None`` (the single cell) or the multi-element
+#: arrangement's (kind, cells, spread of the volume shares w_ξ) (module docstring).
+LO_MODELS = {"single": None, "series3": ("series", 3, (1.0, 1.0))}
+#: A multi-element model's cells start at the wall's activation times at quantiles evenly
+#: spaced over this range (:func:`onset_quantiles`).
+ONSET_RANGE = (0.05, 0.95)
+
+
+def onset_quantiles(cells: int) -> tuple[float, ...]:
+    """The activation-time quantiles (fractions) at which ``cells`` cells start (:data:`ONSET_RANGE`)."""
+    return tuple(float(q) for q in np.linspace(*ONSET_RANGE, cells))
 
 
 @functools.cache
+def _trained_record(name: str) -> trained.TrainedLO:
+    return trained.builtin(name)
+
+
 def _trained(name: str) -> LOParams:
-    return trained.builtin(name).lo
+    return _trained_record(name).lo
 
 
 def lo_params(heart: str, lo: str = "trained") -> LOParams:
@@ -57,14 +81,25 @@ def lo_params(heart: str, lo: str = "trained") -> LOParams:
     return _trained(heart)
 
 
-def normal(lo: str = "trained") -> Heart:
-    """Healthy heart N (F 77): unloaded geometry, LO maps ``lo`` (module docstring), default cell and circulation."""
-    return Heart(geometry=N_UNLOADED, lo=lo_params("normal", lo), circulation=Circulation())
+def normal(lo: str = "trained", model: str = "single") -> Heart:
+    """Healthy heart N (F 77): unloaded geometry, LO maps ``lo`` of the LO heart ``model``
+    (module docstring), default cell and circulation."""
+    return _preset("normal", N_UNLOADED, lo, model)
 
 
-def heart_failure(lo: str = "trained") -> Heart:
-    """Heart-failure heart HF (M 77, no infarct): unloaded geometry, LO maps ``lo``, default cell and circulation."""
-    return Heart(geometry=HF_UNLOADED, lo=lo_params("heart_failure", lo), circulation=Circulation())
+def heart_failure(lo: str = "trained", model: str = "single") -> Heart:
+    """Heart-failure heart HF (M 77, no infarct): unloaded geometry, LO maps ``lo`` of the LO
+    heart ``model``, default cell and circulation."""
+    return _preset("heart_failure", HF_UNLOADED, lo, model)
+
+
+def _preset(heart: str, geometry: Geometry, lo: str, model: str) -> Heart:
+    choice("model", model, tuple(LO_MODELS))
+    if model == "single":
+        return Heart(geometry=geometry, lo=lo_params(heart, lo), circulation=Circulation())
+    if choice("lo", lo, LO_SETS) != "trained":
+        raise InputError(f"lo = {lo!r}: model {model!r} has trained maps only (lo='trained')")
+    return _trained_record(f"{heart}_{model}").heart()
 
 
 def training_circulation(k: int, base: Circulation | None = None) -> Circulation:

@@ -17,6 +17,11 @@ solved by least squares (10 × 9, consistent). The cold-start volume's derivativ
 difference on the host (a smooth closed form and a converged Newton root, relative step 1e-6).
 Geometry enters only through V0 (computed on the host) and is not a ``wrt`` parameter.
 
+A multi-element heart (``Heart.elements``, :mod:`lvenv.multielement`) is differentiated the same
+way over its flat state of 7 n + 4 rows (:mod:`lvenv.lo_model`). Its algebraic rows (the element
+volumes and P_lv) are re-solved at the start of every beat, so F_y has zero columns there (up to
+the Newton tolerance) and they add no condition: their rows of I − F_y are the identity.
+
 Where the metrics are not differentiable. Valve events are located by linear interpolation
 between integrator steps (:mod:`lvenv.events`), so at a fixed ``steps_per_beat`` an event time
 is a smooth function of θ *between* grid steps, and the returned derivative is that of the
@@ -43,11 +48,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lvenv import model
+from lvenv import lo_model, model
 from lvenv.devices import shard_members
 from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.metrics import METRIC_NAMES
-from lvenv.model import IDX_PAT, IDX_PC, IDX_V, N_STATES
 from lvenv.params import Heart, as_batch, field_names
 from lvenv.simulation import beat, simulate
 from lvenv.validation import InputError
@@ -98,8 +102,9 @@ def _check_names(wrt: Sequence[str], metrics: Sequence[str]) -> tuple[tuple[str,
 
 
 def _volume(p: model.ModelParams, y: np.ndarray) -> np.ndarray:
-    """Closed-loop blood volume V + C P_c + Cat P_at (ml) of states ``y`` (9, B)."""
-    return y[IDX_V] + np.asarray(p.circ.C) * y[IDX_PC] + np.asarray(p.circ.Cat) * y[IDX_PAT]
+    """Closed-loop blood volume V + C P_c + Cat P_at (ml) of states ``y`` (n_states, B)."""
+    i_v, i_pc, i_pat = lo_model.circulation_index(p)
+    return y[i_v] + np.asarray(p.circ.C) * y[i_pc] + np.asarray(p.circ.Cat) * y[i_pat]
 
 
 def _cold_volume_rates(heart: Heart, wrt: tuple[str, ...]) -> np.ndarray:
@@ -110,25 +115,26 @@ def _cold_volume_rates(heart: Heart, wrt: tuple[str, ...]) -> np.ndarray:
         step = _VOLUME_STEP * np.maximum(np.abs(value), 1e-3)
         vols = []
         for sign in (1.0, -1.0):
-            p = model.model_params(heart.replace(**{name: value + sign * step}))
-            vols.append(_volume(p, model.initial_state(p)))
+            p = lo_model.core_params(heart.replace(**{name: value + sign * step}))
+            vols.append(_volume(p, lo_model.initial_state(p)))
         rates.append((vols[0] - vols[1]) / (2.0 * step))
     return np.stack(rates)
 
 
 @functools.partial(jax.jit, static_argnames=("wrt", "metrics", "steps"))
 def _beat_tangents(p: model.ModelParams, y: jax.Array, theta: jax.Array, *, wrt: tuple[str, ...], metrics: tuple[str, ...], steps: int):
-    """JVPs of one beat from ``y`` (9, S) along each state axis and each parameter of ``wrt``
-    (values ``theta`` (k, S)), all members at once: (end state (9 + k, 9, S), metrics (9 + k, m, S))."""
+    """JVPs of one beat from ``y`` (n, S) along each state axis and each parameter of ``wrt``
+    (values ``theta`` (k, S)), all members at once: (end state (n + k, n, S), metrics (n + k, m, S));
+    n = 9 for the single cell (:func:`lvenv.lo_model.n_states`)."""
 
     def one_beat(y, th):
         pp = p.replace(**{name: th[j] for j, name in enumerate(wrt)})
         y_end, m, _, _ = beat(pp, y, steps, False)
         return y_end, jnp.stack([m[name] for name in metrics])
 
-    k, size = len(wrt), y.shape[1]
-    eye_y = jnp.concatenate([jnp.broadcast_to(jnp.eye(N_STATES)[:, :, None], (N_STATES, N_STATES, size)), jnp.zeros((k, N_STATES, size))])
-    eye_th = jnp.concatenate([jnp.zeros((N_STATES, k, size)), jnp.broadcast_to(jnp.eye(k)[:, :, None], (k, k, size))])
+    k, (n, size) = len(wrt), y.shape
+    eye_y = jnp.concatenate([jnp.broadcast_to(jnp.eye(n)[:, :, None], (n, n, size)), jnp.zeros((k, n, size))])
+    eye_th = jnp.concatenate([jnp.zeros((n, k, size)), jnp.broadcast_to(jnp.eye(k)[:, :, None], (k, k, size))])
     return jax.vmap(lambda dy, dth: jax.jvp(one_beat, (y, theta), (dy, dth))[1])(eye_y, eye_th)
 
 
@@ -150,31 +156,32 @@ def jacobian(
     wrt, metrics = _check_names(wrt, metrics)
     batch, single = as_batch(heart)
     steady = simulate(batch, max_beats=max_beats, rtol=rtol, steps_per_beat=steps_per_beat, traces=False)
-    p = model.model_params(batch)
-    n, k = len(p.v0), len(wrt)
+    p = lo_model.core_params(batch)
+    n, k, n_y = len(p.v0), len(wrt), lo_model.n_states(p)
     theta = np.stack([np.asarray(p.get(name), float) for name in wrt])  # (k, B)
-    y_star = np.asarray(steady.final_state, float).T  # (9, B)
+    y_star = np.asarray(steady.final_state, float).T  # (n_y, B)
     (p_dev, y_dev, theta_dev), _ = shard_members((p, y_star, theta), n)
 
     d_y, d_m = jax.device_get(_beat_tangents(p_dev, y_dev, theta_dev, wrt=wrt, metrics=metrics, steps=steps_per_beat))
     d_y, d_m = np.asarray(d_y)[..., :n], np.asarray(d_m)[..., :n]
-    f_y, f_th = np.moveaxis(d_y[:N_STATES], 0, 1), np.moveaxis(d_y[N_STATES:], 0, 1)  # (9, 9, B), (9, k, B)
-    m_y, m_th = np.moveaxis(d_m[:N_STATES], 0, 1), np.moveaxis(d_m[N_STATES:], 0, 1)  # (m, 9, B), (m, k, B)
+    f_y, f_th = np.moveaxis(d_y[:n_y], 0, 1), np.moveaxis(d_y[n_y:], 0, 1)  # (n_y, n_y, B), (n_y, k, B)
+    m_y, m_th = np.moveaxis(d_m[:n_y], 0, 1), np.moveaxis(d_m[n_y:], 0, 1)  # (m, n_y, B), (m, k, B)
 
     closed = np.asarray(p.circ.closed_loop, float)
-    grad_c = np.zeros((N_STATES, n))
-    grad_c[IDX_V], grad_c[IDX_PC], grad_c[IDX_PAT] = 1.0, np.asarray(p.circ.C), np.asarray(p.circ.Cat)
+    i_v, i_pc, i_pat = lo_model.circulation_index(p)
+    grad_c = np.zeros((n_y, n))
+    grad_c[i_v], grad_c[i_pc], grad_c[i_pat] = 1.0, np.asarray(p.circ.C), np.asarray(p.circ.Cat)
     partial_c = np.zeros((k, n))  # ∂c/∂θ at fixed state: P_c for C, P_at for Cat
     for j, name in enumerate(wrt):
         if name == "C":
-            partial_c[j] = y_star[IDX_PC]
+            partial_c[j] = y_star[i_pc]
         elif name == "Cat":
-            partial_c[j] = y_star[IDX_PAT]
+            partial_c[j] = y_star[i_pat]
     volume_rhs = _cold_volume_rates(batch, wrt) - partial_c  # (k, B)
 
     values = np.full((n, len(metrics), k), np.nan)
     for b in np.flatnonzero(np.atleast_1d(steady.status) == "ok"):
-        a = np.vstack([np.eye(N_STATES) - f_y[:, :, b], closed[b] * grad_c[:, b][None]])
+        a = np.vstack([np.eye(n_y) - f_y[:, :, b], closed[b] * grad_c[:, b][None]])
         rhs = np.vstack([f_th[:, :, b], closed[b] * volume_rhs[:, b][None]])
         dy_star = np.linalg.lstsq(a, rhs, rcond=None)[0]
         values[b] = m_y[:, :, b] @ dy_star + m_th[:, :, b]

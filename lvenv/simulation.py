@@ -28,6 +28,11 @@ members one after the other, so that a block's working set stays in cache, or, f
 scheme to steady state, the device's members queued through :func:`lvenv.devices.queue_lanes`
 lanes (:func:`run_beats_queued`). :data:`run_beats_jit` is its jitted form.
 
+A multi-element heart (:class:`lvenv.multielement.ElementParams`, ``Heart.elements``) runs
+through the same loops with its flat state of 7 n + 4 rows: :func:`beat` calls
+:func:`lvenv.multielement.beat` for it (the fixed scheme only), and a member whose series Newton
+misses its tolerance is ``diverged``.
+
 Status (:mod:`lvenv.status`): a member whose state turns non-finite or leaves its physical range
 is ``nonfinite`` / ``diverged``; a last beat without the full valve cycle is ``no_valve_cycle``;
 one with a full cycle but a non-physical beat (:func:`lvenv.status.is_physical`: ESV ≤ 0, EF > 1,
@@ -56,7 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec
 
-from lvenv import cell, coupling, events, model
+from lvenv import cell, coupling, events, lo_model, model, multielement
 from lvenv.circulation import beat_period
 from lvenv.devices import layout, member_mesh, queue_lanes, shard_members
 from lvenv.integrator import ros2_step
@@ -114,11 +119,25 @@ def _beat_system(p: ModelParams):
 
 
 def beat(p: ModelParams, y0: jax.Array, steps: int, record: bool, volume_trace: bool = True):
-    """Simulate one beat of B members from states ``y0`` (9, B), Ca onset at t = 0.
+    """Simulate one beat of B members from states ``y0`` (9, B; a multi-element heart's flat
+    state for :class:`lvenv.multielement.ElementParams`), Ca onset at t = 0.
 
     Returns ``(y_end, metrics, valid, traces)``; traces are ``(V, P_lv, P_ao)`` of shape
     ``(steps + 1, B)`` when ``record`` else ``None``.
     """
+    return _checked_beat(p, y0, steps, record, volume_trace)[:4]
+
+
+def _checked_beat(p: ModelParams, y0: jax.Array, steps: int, record: bool, volume_trace: bool):
+    """:func:`beat` and whether each member stayed on its constraint manifold (always, for the
+    single cell; :func:`lvenv.multielement.beat`)."""
+    if lo_model.is_multielement(p):
+        return multielement.beat(p, y0, steps, record, volume_trace)
+    return (*_cell_beat(p, y0, steps, record, volume_trace), True)
+
+
+def _cell_beat(p: ModelParams, y0: jax.Array, steps: int, record: bool, volume_trace: bool):
+    """:func:`beat` of the single-cell heart."""
     period, f, jac, sample = _beat_system(p)
     h = period / steps
     norm = cell.transient_norm(p.cell)
@@ -166,8 +185,15 @@ _MIN_CHANGE = 10.0
 
 
 def _state_scale(p: ModelParams, dtype) -> jax.Array:
-    """:data:`_ERROR_SCALE` per member, shape (9, B), V's entry in ml (the member's V0)."""
-    return jnp.stack([p.v0 if i == IDX_V else jnp.full_like(p.v0, s) for i, s in enumerate(_ERROR_SCALE)]).astype(dtype)
+    """:data:`_ERROR_SCALE` per member, shape (9, B), V's entry in ml (the member's V0). A
+    multi-element state (:func:`lvenv.multielement.flatten`) takes the cell entries for every
+    element, the member's V0 for V and each V_ξ, and 1 kPa for P_c, P_at and P_lv."""
+    if not lo_model.is_multielement(p):
+        return jnp.stack([p.v0 if i == IDX_V else jnp.full_like(p.v0, s) for i, s in enumerate(_ERROR_SCALE)]).astype(dtype)
+    n = p.mu1.shape[0]
+    cells = np.repeat(_ERROR_SCALE[: cell.N_STATES], n)
+    scale = [jnp.full_like(p.v0, s) for s in cells] + [p.v0, jnp.ones_like(p.v0), jnp.ones_like(p.v0)] + [p.v0] * n + [jnp.ones_like(p.v0)]
+    return jnp.stack(scale).astype(dtype)
 
 
 def beat_adaptive(p: ModelParams, y0: jax.Array, step_tol, max_steps: int, grid: tuple[jax.Array, jax.Array] | None = None,
@@ -308,6 +334,8 @@ def run_beats(p: ModelParams, y0: jax.Array, rtol, *, steps: int, max_beats: int
     """
     if scheme == "adaptive" and record:
         raise ValueError("traces are recorded by the fixed scheme only (scheme='fixed')")
+    if scheme == "adaptive" and lo_model.is_multielement(p):
+        raise ValueError("a multi-element heart runs with the fixed scheme only (scheme='fixed')")
     settings = dict(steps=steps, steady=steady, record=record, scheme=scheme, step_tol=step_tol, acceleration=acceleration,
                     volume_trace=volume_trace)
     carry0 = {"n": jnp.asarray(0), **_start_carry(y0, **settings)}
@@ -358,16 +386,17 @@ def _advance(p: ModelParams, scale: jax.Array, c: dict, rtol, *, steps: int, ste
     x = c["start"]
     if scheme == "adaptive":
         y1, m, valid, trials, grid = beat_adaptive(p, x, step_tol, MAX_ADAPTIVE_STEPS, c["grid"], volume_trace)
-        traces = None
+        traces, on_manifold = None, True
     else:
-        y1, m, valid, traces = beat(p, x, steps, record, volume_trace)
+        y1, m, valid, traces, on_manifold = _checked_beat(p, x, steps, record, volume_trace)
         trials = jnp.full(n_members, steps, jnp.int32)
     finite = jnp.all(jnp.isfinite(y1), axis=0)
     for key in SUMMARY_NAMES:  # the frames are NaN without volume_trace
         finite &= jnp.isfinite(m[key])
-    v = y1[IDX_V]
-    in_range = (v > 0.0) & (v < _MAX_VOLUME_FACTOR * p.v0) & (jnp.abs(y1[IDX_PC]) < _MAX_PRESSURE) & (jnp.abs(m["P_lv_peak"]) < _MAX_PRESSURE)
-    ok = finite & in_range
+    i_v, i_pc, _ = lo_model.circulation_index(p)
+    v = y1[i_v]
+    in_range = (v > 0.0) & (v < _MAX_VOLUME_FACTOR * p.v0) & (jnp.abs(y1[i_pc]) < _MAX_PRESSURE) & (jnp.abs(m["P_lv_peak"]) < _MAX_PRESSURE)
+    ok = finite & in_range & on_manifold
     dropped = c["active"] & ~ok & ~c["plain"]  # a failed extrapolation: back to the last plain end
     accept = c["active"] & ok
     failed = c["active"] & ~ok & c["plain"]
@@ -587,6 +616,8 @@ def simulate(
 
     Args:
         params: the parameter set(s); every parameter may differ per member, geometry included.
+            The members share one LO heart model (``Heart.elements``): the single cell, or a
+            multi-element heart (:mod:`lvenv.multielement`; fixed scheme only).
         beats: run exactly this many beats (``converged`` then reports the steady-state test on
             the last two). ``None``: run each member to steady state, at most ``max_beats``.
             Both at most :data:`MAX_BEATS`.
@@ -594,7 +625,8 @@ def simulate(
         steps_per_beat: ROS2 steps per cardiac cycle (h = 60 / HR / steps_per_beat s), in
             [:data:`MIN_STEPS_PER_BEAT`, :data:`MAX_STEPS_PER_BEAT`].
         traces: record t, V, P_lv, P_ao of the last beat.
-        initial_state: state(s) to start from (shape (9,) or (B, 9)); default: the training
+        initial_state: state(s) to start from (shape (9,) or (B, 9); (7 n + 4,) or (B, 7 n + 4)
+            for n elements, :func:`lvenv.multielement.flatten`); default: the training
             protocol's (LV at passive equilibrium with Pat, P_c = Pc0, cell at rest). A member
             whose state is not finite ends with status ``nonfinite``; the others are unaffected.
         dtype: ``jnp.float64`` (default) or ``jnp.float32``.
@@ -622,9 +654,13 @@ def simulate(
         raise InputError("traces = True needs scheme = 'fixed' (the adaptive scheme's steps differ per member); pass traces=False")
     dtype = choice("dtype", jnp.dtype(dtype) if _is_dtype(dtype) else dtype, (jnp.dtype(jnp.float64), jnp.dtype(jnp.float32)))
     heart, single = as_batch(params)
-    p = model.model_params(heart)
+    if heart.elements is not None and settings["scheme"] == "adaptive":
+        raise InputError(f"scheme = 'adaptive' is not available for a multi-element heart (elements = {heart.elements!r}); use scheme='fixed'")
+    if heart.elements is not None and dtype != jnp.dtype(jnp.float64):
+        raise InputError(f"dtype = {dtype}: a multi-element heart runs in float64 (its series Newton tolerance is {multielement.NEWTON_TOL:g} kPa)")
+    p = lo_model.core_params(heart)
     n_members = len(p.v0)
-    y0 = model.initial_state(p).T if initial_state is None else _initial_state(initial_state, n_members)
+    y0 = lo_model.initial_state(p).T if initial_state is None else _initial_state(initial_state, n_members, lo_model.n_states(p))
     (p_dev, y_dev), _ = shard_members((jax.tree.map(lambda x: np.asarray(x, dtype), p), np.asarray(y0.T, dtype)), n_members)
     out = run_beats_jit(
         p_dev, y_dev, jnp.asarray(rtol, dtype),
@@ -659,9 +695,9 @@ def _is_dtype(value) -> bool:
     return True
 
 
-def _initial_state(value, n_members: int) -> np.ndarray:
-    """User initial state(s) as an ``(n_members, 9)`` float array (one row for all members, or one each)."""
+def _initial_state(value, n_members: int, n_states: int) -> np.ndarray:
+    """User initial state(s) as an ``(n_members, n_states)`` float array (one row for all members, or one each)."""
     y = real_array("initial_state", value)
-    if y.shape not in ((model.N_STATES,), (n_members, model.N_STATES)):
-        raise InputError(f"initial_state has shape {y.shape}; expected ({model.N_STATES},) or ({n_members}, {model.N_STATES}) (one row per member)")
-    return np.broadcast_to(y, (n_members, model.N_STATES))
+    if y.shape not in ((n_states,), (n_members, n_states)):
+        raise InputError(f"initial_state has shape {y.shape}; expected ({n_states},) or ({n_members}, {n_states}) (one row per member)")
+    return np.broadcast_to(y, (n_members, n_states))

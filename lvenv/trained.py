@@ -2,9 +2,11 @@
 what the presets load (package data ``lvenv/data/trained_<name>.json``).
 
 A record holds the nine LO parameters (DESIGN §1 plus the activation delay of §3), the cell
-unit it was trained with, C per training beat, the passive fit's residual and the provenance
-(oracle backend, mesh size, time step, the oracle runs' cache keys, code versions). It saves to
-and loads from JSON; :meth:`TrainedLO.heart` builds a :class:`~lvenv.params.Heart`.
+unit it was trained with, the LO heart model they were trained for (``elements``: ``None`` for
+the single cell, else the multi-element :class:`~lvenv.params.Arrangement`), C per training
+beat, the passive fit's residual and the provenance (oracle backend, mesh size, time step, the
+oracle runs' cache keys, code versions). It saves to and loads from JSON;
+:meth:`TrainedLO.heart` builds a :class:`~lvenv.params.Heart` of that model.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from typing import Any
 
 from lvenv import archive
 from lvenv.geometry import Geometry
-from lvenv.params import CellParams, Circulation, Heart, LOParams, validate
+from lvenv.params import Arrangement, CellParams, Circulation, Heart, LOParams, validate
 from lvenv.validation import InputError, real
 
 __all__ = ["TrainedLO", "DATA", "builtin"]
@@ -33,7 +35,9 @@ class TrainedLO:
 
     ``congruency``: C per training beat ("1", "2", "3") and overall ("C"), a fraction;
     ``congruency_without_delay``: the same for the fit with the delay fixed at 0, when the
-    delay was tried; ``passive_rmse_ml``: RMS volume residual of the passive fit.
+    delay was tried; ``passive_rmse_ml``: RMS volume residual of the passive fit; ``elements``:
+    the LO heart model the maps belong to (``Heart.elements``; optional in a record, ``null``
+    by default: the single cell).
     """
 
     geometry: Geometry
@@ -43,17 +47,19 @@ class TrainedLO:
     congruency_without_delay: dict[str, float] | None
     passive_rmse_ml: float
     provenance: dict[str, Any]
+    elements: Arrangement | None = None
 
     def heart(self, circulation: Circulation | None = None, cell: CellParams | None = None) -> Heart:
-        """A Heart with these maps (default circulation and the training cell unless given)."""
+        """A Heart with these maps and model (default circulation and the training cell unless given)."""
         return Heart(geometry=self.geometry, lo=self.lo, cell=self.cell if cell is None else cell,
-                     circulation=Circulation() if circulation is None else circulation)
+                     circulation=Circulation() if circulation is None else circulation, elements=self.elements)
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "geometry": dataclasses.asdict(self.geometry), "lo": dataclasses.asdict(self.lo), "cell": dataclasses.asdict(self.cell),
             "congruency": self.congruency, "congruency_without_delay": self.congruency_without_delay,
             "passive_rmse_ml": self.passive_rmse_ml, "provenance": self.provenance,
+            "elements": None if self.elements is None else self.elements.to_dict(),
         }
 
     def to_json(self, path: str | pathlib.Path | None = None) -> str:
@@ -66,12 +72,14 @@ class TrainedLO:
     def from_dict(cls, record: Mapping[str, Any]) -> TrainedLO:
         """A record from its dict (:meth:`to_dict`), checked field by field: a missing, unknown,
         mistyped or list-valued field, or a parameter out of its range, raises
-        :class:`~lvenv.validation.InputError` naming it; nothing falls back to a default."""
+        :class:`~lvenv.validation.InputError` naming it; nothing falls back to a default, but
+        ``elements`` (the single cell's records may leave it out)."""
         if not isinstance(record, Mapping):
             raise InputError(f"a trained-LO record is a JSON object, not {type(record).__name__}")
-        _known("record", record, _FIELDS)
+        _known("record", record, _FIELDS, optional=("elements",))
         geometry, lo, cell = (_parameters(part, record, kind) for part, kind in (("geometry", Geometry), ("lo", LOParams), ("cell", CellParams)))
-        validate(Heart(geometry=geometry, lo=lo, cell=cell))
+        elements = None if record.get("elements") is None else Arrangement.from_dict(record["elements"])
+        validate(Heart(geometry=geometry, lo=lo, cell=cell, elements=elements))
         without = record["congruency_without_delay"]
         provenance = record["provenance"]
         if not isinstance(provenance, Mapping):
@@ -79,7 +87,7 @@ class TrainedLO:
         return cls(
             geometry=geometry, lo=lo, cell=cell, congruency=_fractions("congruency", record["congruency"]),
             congruency_without_delay=None if without is None else _fractions("congruency_without_delay", without),
-            passive_rmse_ml=_rmse(record["passive_rmse_ml"]), provenance=dict(provenance),
+            passive_rmse_ml=_rmse(record["passive_rmse_ml"]), provenance=dict(provenance), elements=elements,
         )
 
     @classmethod
@@ -95,14 +103,15 @@ class TrainedLO:
             raise InputError(f"trained-LO record {str(path)!r}: {err}") from None
 
 
-#: The fields of a record (:meth:`TrainedLO.to_dict`), every one required.
+#: The fields of a record (:meth:`TrainedLO.to_dict`), every one required but ``elements``.
 _FIELDS = tuple(f.name for f in dataclasses.fields(TrainedLO))
 
 
-def _known(where: str, value: Mapping[str, Any], names: tuple[str, ...]) -> None:
-    """InputError naming the first missing or unknown key of ``value`` (the object ``where``)."""
-    if missing := [n for n in names if n not in value]:
-        raise InputError(f"{where} lacks the field(s) {missing}; required: {list(names)}")
+def _known(where: str, value: Mapping[str, Any], names: tuple[str, ...], optional: tuple[str, ...] = ()) -> None:
+    """InputError naming the first missing or unknown key of ``value`` (the object ``where``);
+    the ``optional`` names may be missing."""
+    if missing := [n for n in names if n not in value and n not in optional]:
+        raise InputError(f"{where} lacks the field(s) {missing}; required: {[n for n in names if n not in optional]}")
     if unknown := sorted(str(k) for k in value if k not in names):
         raise InputError(f"{where} has the unknown field(s) {unknown}; known: {list(names)}")
 
@@ -134,7 +143,9 @@ def _fractions(name: str, value: Any) -> dict[str, float]:
 
 
 def builtin(name: str) -> TrainedLO:
-    """The shipped record ``"normal"`` or ``"heart_failure"`` (trained against the 3-D oracle)."""
+    """A shipped record, trained against the 3-D oracle: ``"normal"`` or ``"heart_failure"``
+    (the single cell), ``"normal_series3"`` or ``"heart_failure_series3"`` (the 3-cell series
+    heart, :data:`lvenv.presets.LO_MODELS`)."""
     path = DATA / f"trained_{name}.json"
     if not path.is_file():
         raise InputError(f"no trained LO record {name!r} in {DATA}; known: {sorted(p.stem[len('trained_'):] for p in DATA.glob('trained_*.json'))}")

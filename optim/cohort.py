@@ -276,6 +276,9 @@ def _patient(row: Mapping[str, str], base: Heart, regression: Regression | None 
     heart = base.replace(HR=v["HR_bpm"])
     anatomy = {}
     if any(g is not None for g in geometry.values()):
+        if base.elements is not None:
+            raise InputError(f"{', '.join(c for c, f in GEOMETRY_COLUMNS.items() if geometry[f] is not None)}: the base heart is a multi-element "
+                             "heart, whose cells' onsets and maps belong to its own wall; a row with its own geometry needs the single-cell base heart")
         try:
             shape = dataclasses.replace(base.geometry, **{k: g for k, g in geometry.items() if g is not None})
         except InputError as err:

@@ -21,11 +21,12 @@ all from the documented initial state, then
    fit is repeated with the LO activation delay d (`lvenv.coupling.calcium`) trained alongside
    {μ1, μ2, γ}, and kept if it lowers C; both C are reported.
 
-**Multi-element LO hearts.** `one_beat`, `lo_beats`, `run_congruency` and `fit_active` take an
-``arrangement`` (`lvenv.multielement.Arrangement`): the LO beats then come from
-`lvenv.multielement.simulate` with that arrangement instead of the single-cell `lvenv.simulate`,
-for comparing candidate low-order hearts against the same oracle runs
-(`scripts/candidate_study.py`).
+**Multi-element LO hearts.** `lo_beats`, `run_congruency` and `fit_active` take an
+``arrangement`` (`lvenv.params.Arrangement`): the training hearts then carry it
+(``Heart.elements``) and `lvenv.simulate` runs that multi-element heart, for comparing candidate
+low-order hearts against the same oracle runs (`scripts/candidate_study.py`). `wall_arrangement`
+sets the cells' calcium onsets from the wall's own activation times, and `train_model` trains
+the maps of a model of `lvenv.presets.LO_MODELS` from a single-cell record.
 
 The result, `lvenv.trained.TrainedLO`, holds the nine parameters, C per training beat, the
 passive fit's residual and the provenance (backend, mesh size, time step, the oracle runs' cache
@@ -55,10 +56,9 @@ from scipy.optimize import least_squares
 import fe_oracle
 from fe_oracle import cache as oracle_cache
 from fe_oracle.cases import Passive
-from lvenv import coupling, multielement, presets
+from lvenv import coupling, lo_model, presets
 from lvenv.geometry import Geometry, cavity_volume
-from lvenv.model import IDX_PAT, IDX_PC
-from lvenv.params import CellParams, Heart, LOParams
+from lvenv.params import Arrangement, CellParams, Heart, LOParams
 from lvenv.simulation import simulate
 from lvenv.status import is_usable
 from lvenv.trained import TrainedLO
@@ -141,35 +141,31 @@ def congruency(oracle: Mapping[str, np.ndarray], t: np.ndarray, v: np.ndarray, p
     return np.sum(residuals(oracle, t, v, p) ** 2, axis=1)
 
 
-def training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams]) -> list[Heart]:
-    """One heart per (LO candidate, condition), candidate-major."""
+def training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams], elements: Arrangement | None = None) -> list[Heart]:
+    """One heart per (LO candidate, condition), candidate-major, of the LO heart model ``elements``."""
     base = [presets.training_circulation(k) for k in CONDITIONS]
-    return [Heart(geometry=geometry, lo=lo, cell=cell, circulation=circ) for lo in los for circ in base]
+    return [Heart(geometry=geometry, lo=lo, cell=cell, circulation=circ, elements=elements) for lo in los for circ in base]
 
 
-def one_beat(hearts: Sequence[Heart], steps_per_beat: int = 1000,
-             arrangement: multielement.Arrangement | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One beat of each of ``hearts`` from the training-protocol state, one batched simulation of
-    the single-cell heart (`lvenv.simulate`) or, with ``arrangement``, of that multi-element heart
-    (`lvenv.multielement.simulate`): (status names (members,), t (s), V (ml), P_lv (kPa), each
-    (members, samples))."""
-    if arrangement is None:
-        sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
-        return np.asarray(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv
-    sim = multielement.simulate(hearts, arrangement, beats=1, steps_per_beat=steps_per_beat)
-    return np.asarray(sim.status), sim.traces["t"], sim.traces["V"], sim.traces["P_lv"]
+def one_beat(hearts: Sequence[Heart], steps_per_beat: int = 1000) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One beat of each of ``hearts`` from the training-protocol state, one batched simulation
+    (`lvenv.simulate`, of the model the hearts carry): (status names (members,), t (s), V (ml),
+    P_lv (kPa), each (members, samples))."""
+    sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
+    return np.asarray(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv
 
 
 def lo_beats(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
-             arrangement: multielement.Arrangement | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One LO beat per (candidate, condition) of :func:`training_hearts` (:func:`one_beat`):
-    (usable (members,), t (s), V (ml), P_lv (kPa), each (members, samples))."""
-    status, t, v, p = one_beat(training_hearts(data.geometry, data.cell, los), steps_per_beat, arrangement)
+             arrangement: Arrangement | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One LO beat per (candidate, condition) of :func:`training_hearts` (:func:`one_beat`; a
+    multi-element heart with ``arrangement``): (usable (members,), t (s), V (ml), P_lv (kPa),
+    each (members, samples))."""
+    status, t, v, p = one_beat(training_hearts(data.geometry, data.cell, los, arrangement), steps_per_beat)
     return is_usable(status), t, v, p
 
 
 def run_congruency(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
-                   arrangement: multielement.Arrangement | None = None) -> np.ndarray:
+                   arrangement: Arrangement | None = None) -> np.ndarray:
     """C per (candidate, condition) of LO candidates against ``data``, shape (len(los), 3),
     one batched simulation (:func:`lo_beats`); NaN where the LO beat failed."""
     usable, t, v, p = lo_beats(data, los, steps_per_beat, arrangement)
@@ -211,7 +207,7 @@ def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:
 # ---------------------------------------------------------------------------- active
 def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16,
                seed: int = 0, steps_per_beat: int = 1000, progress: bool | None = None,
-               arrangement: multielement.Arrangement | None = None) -> tuple[LOParams, np.ndarray]:
+               arrangement: Arrangement | None = None) -> tuple[LOParams, np.ndarray]:
     """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay}) by OrthoMADS with kriging search, from
     ``start`` (clipped into :data:`ACTIVE_BOUNDS`); returns the best LO parameters and C per
     training beat. ``arrangement``: train a multi-element LO heart (:func:`lo_beats`).
@@ -246,7 +242,7 @@ def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_
 
 
 def _polish(data: OracleData, lo: LOParams, names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray, steps_per_beat: int,
-            arrangement: multielement.Arrangement | None) -> LOParams:
+            arrangement: Arrangement | None) -> LOParams:
     """Refine MADS's best point by bounded least squares on the residuals of C² (trust-region
     reflective, `scipy.optimize.least_squares`); kept only if C² falls."""
 
@@ -326,14 +322,58 @@ def train_on(data: OracleData, *, start: LOParams | None = None, delay: str = "a
         without = None if c_runs is None else congruency_dict(c_runs)
         if c_runs is None or overall(c_s) < overall(c_runs):
             lo, c_runs = lo_s, c_s
+    provenance = _provenance(data, budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat)
+    return TrainedLO(data.geometry, lo, data.cell, congruency_dict(c_runs), without, rmse, provenance)
+
+
+def _provenance(data: OracleData, **training: Any) -> dict[str, Any]:
+    """Where a record trained on ``data`` came from: the oracle's backend, mesh size, time step,
+    cache keys and options, the code versions, the training's settings and the time."""
     mesh = None if data.backend != "dolfinx" else float(data.options.get("mesh_size", 6.0))
-    provenance = {
+    return {
         "backend": data.backend, "mesh_size_mm": mesh, "dt_s": data.beats[CONDITIONS[0]].metadata.get("dt_s"),
         "oracle_keys": data.keys, "oracle_options": {k: v for k, v in data.options.items() if k != "cache_dir" and isinstance(v, (int, float, str))},
-        "code_version": _code_version(data.backend), "budget": budget, "batch": batch, "seed": seed, "steps_per_beat": steps_per_beat,
+        "code_version": _code_version(data.backend), **training,
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
     }
-    return TrainedLO(data.geometry, lo, data.cell, congruency_dict(c_runs), without, rmse, provenance)
+
+
+@functools.cache
+def wall_onsets(geometry: Geometry, mesh_size_mm: float, cells: int) -> tuple[float, ...]:
+    """The calcium onsets (s, relative to the LO delay) of ``cells`` cells: the activation times
+    of ``geometry``'s oracle wall at :func:`lvenv.presets.onset_quantiles`, less their median
+    (`fe_oracle.activation.activation_quantiles`: meshing and an eikonal solve, about a second;
+    computed once per wall and cell count)."""
+    from fe_oracle.activation import activation_quantiles
+
+    q = activation_quantiles(geometry, mesh_size_mm, presets.onset_quantiles(cells))
+    return tuple(float(x) for x in q - np.median(q))
+
+
+def wall_arrangement(kind: str, cells: int, spread: tuple[float, float], data: OracleData) -> Arrangement:
+    """A multi-element arrangement whose cells start at the activation times of ``data``'s wall
+    (:func:`wall_onsets` at the mesh of its training beats)."""
+    return Arrangement(kind, cells, spread=spread, onsets=wall_onsets(data.geometry, data.beats[CONDITIONS[1]].metadata["mesh_size_mm"], cells))
+
+
+def train_model(data: OracleData, single: TrainedLO, model: str, *, budget: int = 480, batch: int = 16, seed: int = 0,
+                steps_per_beat: int = 1000, progress: bool | None = None) -> TrainedLO:
+    """The maps of the LO heart model ``model`` (:data:`lvenv.presets.LO_MODELS`) of ``data``'s
+    wall, trained from the single cell's record ``single`` of the same wall: its cells' onsets
+    from the wall (:func:`wall_arrangement`), then {μ1, μ2, γ, delay} refitted by
+    :func:`fit_active` (MADS ``budget``) from ``single``'s values; the passive maps, and so the
+    passive fit's residual, stay ``single``'s (the models' passive curves are equal for equal
+    volume shares, w = 1)."""
+    choice("model", model, tuple(m for m, spec in presets.LO_MODELS.items() if spec is not None))
+    if single.elements is not None or single.geometry != data.geometry:
+        raise InputError(f"train_model starts from a single-cell record of the same wall (got elements = {single.elements!r}, "
+                         f"geometry {single.geometry} for data of {data.geometry})")
+    arrangement = wall_arrangement(*presets.LO_MODELS[model], data)
+    lo, c_runs = fit_active(data, single.lo, (*ACTIVE_NAMES, "delay"), budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat,
+                            progress=progress, arrangement=arrangement)
+    provenance = _provenance(data, budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat, model=model,
+                             start=dataclasses.asdict(single.lo), onset_quantiles=list(presets.onset_quantiles(arrangement.n_elements)))
+    return TrainedLO(data.geometry, lo, data.cell, congruency_dict(c_runs), None, single.passive_rmse_ml, provenance, elements=arrangement)
 
 
 #: Fidelity targets and their tolerance: (kind, bound) with kind "abs" (internal units) or "rel".
@@ -373,7 +413,8 @@ def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, st
     if not is_usable(lo_run.status):
         raise InputError(f"the LO heart has no usable steady state (status {lo_run.status!r}); nothing to check")
     y = lo_run.final_state
-    circ = dataclasses.replace(heart.circulation, Pc0=float(y[IDX_PC]), Pat=float(y[IDX_PAT]))
+    _, i_pc, i_pat = lo_model.circulation_index(heart)
+    circ = dataclasses.replace(heart.circulation, Pc0=float(y[i_pc]), Pat=float(y[i_pat]))
     result = fe_oracle.run(heart.geometry, circ, backend, cell=heart.cell, beats=beats, progress=progress, **oracle_options)
     fe = fe_oracle.beat_metrics(result)
     rows, within = {}, {}

@@ -22,8 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from lvenv.multielement import Arrangement
-from lvenv.params import LOParams
+from lvenv.params import Arrangement, LOParams
 from optim import congruency
 
 __all__ = ["WINDOWS", "MAX_SHIFT_S", "SHIFT_STEP_S", "crossings", "valve_events", "window_masks", "decompose", "diagnose", "summary"]

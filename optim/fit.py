@@ -29,7 +29,7 @@ import gymnasium
 import numpy as np
 
 import lvenv
-from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME
+from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME, default_scheme
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS
 from lvenv.params import Heart
@@ -65,12 +65,16 @@ class FitRow(MinimizeResult):
 
 
 def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60,
-             rtol: float = 1e-4, scheme: str = ENV_SCHEME, plausibility: bool | Sequence[Band] = True) -> Any:
+             rtol: float = 1e-4, scheme: str | None = None, plausibility: bool | Sequence[Band] = True) -> Any:
     """A vector env set up for optimisation (autoreset Disabled, no tolerance, no truncation).
 
-    ``scheme``: the env's integration scheme (:data:`lvenv.simulation.SCHEMES`); ``steps_per_beat``
-    applies to ``scheme="fixed"`` only. ``plausibility``: the objective's physiological bands
-    (:mod:`lvenv.plausibility`; default on)."""
+    ``scheme``: the env's integration scheme (:data:`lvenv.simulation.SCHEMES`; ``None``: the
+    env's default for the patient's LO heart model, :func:`lvenv.env.core.default_scheme`);
+    ``steps_per_beat`` applies to ``scheme="fixed"`` only. ``plausibility``: the objective's
+    physiological bands (:mod:`lvenv.plausibility`; default on)."""
+    if scheme is None:
+        first = patient[0] if isinstance(patient, Sequence) and not isinstance(patient, str) else patient
+        scheme = default_scheme(_patient(first).heart)
     return gymnasium.make_vec(
         "lvenv/LVHeart-v0", num_envs=num_envs, patient=patient, max_episode_steps=None, tolerance=0.0,
         autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme,

@@ -10,7 +10,7 @@ section for the documentation site (:func:`build_pages`, called by ``docs/conf.p
 =================  =====================================================  ===============================================
 section            read from                                              written by
 =================  =====================================================  ===============================================
-training           ``lvenv/data/trained_*.json``                          ``python scripts/train_presets.py``
+training           ``lvenv/data/trained_*.json``                          ``python scripts/train_presets.py [--model series3]``
 generalisation     ``out/generalisation/generalisation.{md,png}``         ``python scripts/generalisation.py``
 multi-element      ``out/multielement/multielement.md``                   ``python scripts/multielement_study.py``
 fidelity           ``out/diagnosis/diagnosis.md``;                        ``python scripts/congruency_diagnosis.py``;
@@ -72,10 +72,11 @@ def _image(path: Path, report_dir: Path) -> str:
 
 
 def _training() -> list[str]:
-    lines = ["Command: `python scripts/train_presets.py` (or `lvenv train HEART --out FILE`); "
-             "read from the records shipped in `lvenv/data/`, each trained on the date in its row.", "",
+    lines = ["Command: `python scripts/train_presets.py` (or `lvenv train HEART --out FILE`; the 3-cell series heart: "
+             "`python scripts/train_presets.py --model series3`); read from the records shipped in `lvenv/data/`, each trained on "
+             "the date in its row.", "",
              "| heart | C ① | C ② | C ③ | C | C without the delay | delay (ms) | backend, mesh | trained |", "|---|---|---|---|---|---|---|---|---|"]
-    for name in ("normal", "heart_failure"):
+    for name in ("normal", "heart_failure", "normal_series3", "heart_failure_series3"):
         record = trained.builtin(name)
         c, without = record.congruency, record.congruency_without_delay or {}
         cells = [f"{100 * c[k]:.2f} %" for k in ("1", "2", "3", "C")]

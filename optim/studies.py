@@ -4,9 +4,9 @@
   when one cell or circulation parameter at a time leaves its training value: Vmax factor
   (0.25–4), n0 (0.5–0.9), nA (1–10), τ2 (×1.1–2.0) and R1 (up to 0.1 kPa·s/ml), one beat under
   training condition ②. Reported per scenario: C (DESIGN §3, one run) and the largest pointwise
-  error of P and V, each relative to the oracle trace's maximum. With an ``lo_arrangement`` the LO
-  side is that multi-element heart (:mod:`lvenv.multielement`), for comparing candidate
-  low-order hearts on the same oracle runs.
+  error of P and V, each relative to the oracle trace's maximum. For a heart that carries a
+  multi-element model (``Heart.elements``) the LO side is that heart (:mod:`lvenv.multielement`),
+  for comparing candidate low-order hearts on the same oracle runs.
 * :func:`multielement_table` (their Table 4): a single-element LO heart trained
   (:func:`optim.congruency.train`) to each 256-element model (parallel and series,
   :mod:`lvenv.multielement`) along four sweeps of ten values: Vmax factor 0.25–4, n0 0.5–0.9,
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 import fe_oracle
-from lvenv import multielement, presets
+from lvenv import presets
 from lvenv.params import CellParams, Heart
 from optim.congruency import congruency, one_beat, train
 
@@ -64,14 +64,13 @@ def _errors(oracle: fe_oracle.OracleResult, t: np.ndarray, v: np.ndarray, p: np.
 
 
 def generalisation(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
-                   steps_per_beat: int = 1000, progress: bool | None = None, lo_arrangement: multielement.Arrangement | None = None,
-                   **oracle_options: Any) -> list[dict[str, Any]]:
+                   steps_per_beat: int = 1000, progress: bool | None = None, **oracle_options: Any) -> list[dict[str, Any]]:
     """One row per scenario: its name, the change, C, the pointwise errors, the oracle's cache key,
     and the traces of both (for figures: ``lo`` with ``t``, ``V``, ``P_lv``). The LO beats run as
-    one batch, of the single-cell heart or, with ``lo_arrangement``, of that multi-element heart
-    (``oracle_options`` keep ``arrangement`` for the multielement oracle)."""
+    one batch, of the model ``heart`` carries (``Heart.elements``: the single cell or a
+    multi-element heart; ``oracle_options`` keep ``arrangement`` for the multielement oracle)."""
     hearts = {name: scenario(heart, change) for name, change in scenarios.items()}
-    status, t, v, p = one_beat(list(hearts.values()), steps_per_beat, lo_arrangement)
+    status, t, v, p = one_beat(list(hearts.values()), steps_per_beat)
     traces = [{"t": t[i], "V": v[i], "P_lv": p[i]} for i in range(len(hearts))]
     rows = []
     for i, (name, h) in enumerate(hearts.items()):

@@ -5,7 +5,8 @@
 Per batch size, beats per second (median of ``--repeats`` timed runs after one compile run, 2 beats
 from the training-protocol state, 1000 ROS2 steps per beat, no traces) of the single-cell heart
 (`lvenv.simulate`) and of the multi-element candidates of `scripts/candidate_study.py`
-(`lvenv.multielement.simulate`: 5 cells in series or in parallel, or 3 in series, with the N wall's onsets), and
+(`lvenv.simulate` of the same hearts carrying the arrangement, ``Heart.elements``: 5 cells in
+series or in parallel, or 3 in series, with the N wall's onsets), and
 ``ratio_vs_single``: the single cell's beats/s over the candidate's (how many times it costs).
 """
 
@@ -21,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 import lvenv  # noqa: E402
-from lvenv import multielement  # noqa: E402
+from lvenv.params import Arrangement  # noqa: E402
 from scripts.bench_lo import cohort, timed  # noqa: E402
 
 BEATS, STEPS = 2, 1000
@@ -40,16 +41,17 @@ def main() -> None:
     parser.add_argument("--batches", nargs="+", type=int, default=[256, 1024])
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    candidates = {"series-onsets": multielement.Arrangement("series", len(ONSETS), (1.0, 1.0), onsets=ONSETS),
-                  "parallel-onsets": multielement.Arrangement("parallel", len(ONSETS), onsets=ONSETS),
-                  "series3-onsets": multielement.Arrangement("series", 3, (1.0, 1.0), onsets=ONSETS[::2])}
+    candidates = {"series-onsets": Arrangement("series", len(ONSETS), (1.0, 1.0), onsets=ONSETS),
+                  "parallel-onsets": Arrangement("parallel", len(ONSETS), onsets=ONSETS),
+                  "series3-onsets": Arrangement("series", 3, (1.0, 1.0), onsets=ONSETS[::2])}
     out = {"beats": BEATS, "steps_per_beat": STEPS, "repeats": args.repeats, "batches": {}}
     for n in args.batches:
         batch = cohort(n)
         single = _median_rate(lambda: lvenv.simulate(batch, beats=BEATS, traces=False, steps_per_beat=STEPS), n, args.repeats)
         row = {"single_beats_per_s": single}
         for name, arr in candidates.items():
-            rate = _median_rate(lambda: multielement.simulate(batch, arr, beats=BEATS, traces=False, steps_per_beat=STEPS), n, args.repeats)
+            arranged = batch.replace(elements=arr)
+            rate = _median_rate(lambda: lvenv.simulate(arranged, beats=BEATS, traces=False, steps_per_beat=STEPS), n, args.repeats)
             row[name] = {"beats_per_s": rate, "ratio_vs_single": single / rate}
         out["batches"][str(n)] = row
         print(f"# batch {n}: single {single:,.0f} beats/s; " + "; ".join(f"{k} x{v['ratio_vs_single']:.1f}" for k, v in row.items() if k != "single_beats_per_s"),

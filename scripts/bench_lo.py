@@ -2,6 +2,7 @@
 
     python scripts/bench_lo.py                       # CPU: batches 256 … 4096, fixed 1000 / 500 steps and adaptive
     python scripts/bench_lo.py --batches 1024 65536 262144 1048576 --dtype float32   # GPU
+    python scripts/bench_lo.py --models single series3 --configs fixed:1000 --batches 1024   # a model's cost
 
 A configuration is ``fixed:STEPS`` (equal ROS2 steps per beat; ``fixed:1000`` is the old
 default) or ``adaptive:TOL`` (per-member step-size control at relative tolerance TOL).
@@ -12,6 +13,11 @@ batch size beats/s (median of --repeats timed runs after one compile run), both 
 through ``lvenv.simulate`` (validation, V0, initial state, transfers included) and for the jitted
 batch core alone on device-resident inputs (what the vector env steps); ``ratio_vs_first`` is
 the core's beats/s over the first configuration's at the same batch.
+
+``--models`` (`lvenv.presets.LO_MODELS`): run the configurations for each LO heart model, the
+first model first; ``ratio_vs_first`` then also compares each model with the first model's first
+configuration (a multi-element model takes the fixed configurations only, and has no Radau
+reference: its ``error_vs_radau`` is null).
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import lvenv  # noqa: E402
-from lvenv import model, presets  # noqa: E402
+from lvenv import lo_model, presets  # noqa: E402
 from lvenv.devices import shard_members  # noqa: E402
 from lvenv.simulation import DEFAULT_STEP_TOL, run_beats_jit  # noqa: E402
 from lvenv.geometry import cavity_volume  # noqa: E402
@@ -39,11 +45,11 @@ from tests.lvenv.reference_lo import simulate_reference  # noqa: E402
 BEATS = 2
 
 
-def cohort(n: int, seed: int = 0) -> lvenv.Heart:
-    """A stacked batch of n hearts alternating N / HF with randomised physiology."""
+def cohort(n: int, seed: int = 0, model: str = "single") -> lvenv.Heart:
+    """A stacked batch of n hearts alternating N / HF with randomised physiology, of the LO heart ``model``."""
     rng = np.random.default_rng(seed)
-    pair = lvenv.stack([presets.normal(), presets.heart_failure()])
-    tiled = jax.tree.map(lambda x: np.resize(x, n), pair)
+    pair = (presets.normal(model=model), presets.heart_failure(model=model))
+    tiled = lvenv.stack([pair[i % 2] for i in range(n)])
     return tiled.replace(tau2=rng.uniform(0.09, 0.25, n), Sa=rng.uniform(0.8, 1.5, n), R3=rng.uniform(0.12, 0.4, n), C=rng.uniform(6.0, 25.0, n), Cat=rng.uniform(1.5, 10.0, n))
 
 
@@ -70,8 +76,8 @@ def time_batch(batch, config, dtype, repeats):
 
 def time_core(batch, config, dtype, repeats):
     """The jitted batch core alone, on device-resident, pre-validated inputs (the env's hot path)."""
-    p = model.model_params(batch)
-    (p_dev, y_dev), _ = shard_members((jax.tree.map(lambda x: np.asarray(x, dtype), p), np.asarray(model.initial_state(p), dtype)), len(p.v0))
+    p = lo_model.core_params(batch)
+    (p_dev, y_dev), _ = shard_members((jax.tree.map(lambda x: np.asarray(x, dtype), p), np.asarray(lo_model.initial_state(p), dtype)), len(p.v0))
     kw = settings(config)
     run = lambda: jax.block_until_ready(run_beats_jit(p_dev, y_dev, jnp.asarray(1e-4, dtype), steps=kw["steps_per_beat"], max_beats=BEATS,
                                                       steady=False, record=False, scheme=kw["scheme"], step_tol=kw["step_tol"]))
@@ -111,6 +117,7 @@ def main() -> None:
     parser.add_argument("--dtype", choices=["float64", "float32"], default="float64")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--reference-members", type=int, default=16, help="members integrated by the Radau baseline")
+    parser.add_argument("--models", nargs="+", choices=list(presets.LO_MODELS), default=["single"], help="LO heart models; the first is the baseline")
     args = parser.parse_args()
     dtype = {"float64": jnp.float64, "float32": jnp.float32}[args.dtype]
     out = {
@@ -120,23 +127,29 @@ def main() -> None:
     ref_batch = cohort(args.reference_members, seed=1)
     ref_hearts = [jax.tree.map(lambda x, i=i: float(x[i]), ref_batch) for i in range(args.reference_members)]
     first: dict[int, float] = {}
-    for config in args.configs:
-        err, radau_beats_per_s, steps = accuracy(ref_hearts, config, dtype)
-        entry = {"config": config, "error_vs_radau": err, "steps_per_beat_median": steps, "radau_beats_per_s": radau_beats_per_s, "batches": []}
-        for n in args.batches:
-            batch = cohort(n)
-            _, compile_s, times = time_batch(batch, config, dtype, args.repeats)
-            core_times = time_core(batch, config, dtype, args.repeats)
-            bps = n * BEATS / float(np.median(times))
-            core_bps = n * BEATS / float(np.median(core_times))
-            first.setdefault(n, core_bps)
-            entry["batches"].append({
-                "batch": n, "beats_per_s_median": bps, "speedup_vs_radau": bps / radau_beats_per_s, "times_s": times, "first_call_s": compile_s,
-                "core_beats_per_s_median": core_bps, "core_times_s": core_times, "ratio_vs_first": core_bps / first[n],
-            })
-            print(f"# {config} batch {n}: simulate() {bps:,.0f} beats/s, jitted core {core_bps:,.0f} beats/s (x{core_bps / first[n]:.2f}); "
-                  f"error EF {100 * err['EF_abs']:.2f} pt, timing {1e3 * err['timing_abs_s']:.2f} ms, pressure {100 * err['pressure_rel']:.2f} %", file=sys.stderr, flush=True)
-        out["runs"].append(entry)
+    for name in args.models:
+        multi = presets.LO_MODELS[name] is not None
+        for config in args.configs:
+            if multi and not config.startswith("fixed:"):
+                continue  # the adaptive scheme is the single cell's
+            err, radau_beats_per_s, steps = (None, None, int(config.split(":")[1])) if multi else accuracy(ref_hearts, config, dtype)
+            entry = {"model": name, "config": config, "error_vs_radau": err, "steps_per_beat_median": steps, "radau_beats_per_s": radau_beats_per_s, "batches": []}
+            for n in args.batches:
+                batch = cohort(n, model=name)
+                _, compile_s, times = time_batch(batch, config, dtype, args.repeats)
+                core_times = time_core(batch, config, dtype, args.repeats)
+                bps = n * BEATS / float(np.median(times))
+                core_bps = n * BEATS / float(np.median(core_times))
+                first.setdefault(n, core_bps)
+                entry["batches"].append({
+                    "batch": n, "beats_per_s_median": bps, "speedup_vs_radau": None if multi else bps / radau_beats_per_s, "times_s": times,
+                    "first_call_s": compile_s, "core_beats_per_s_median": core_bps, "core_times_s": core_times, "ratio_vs_first": core_bps / first[n],
+                })
+                accurate = "" if multi else (f"; error EF {100 * err['EF_abs']:.2f} pt, timing {1e3 * err['timing_abs_s']:.2f} ms, "
+                                             f"pressure {100 * err['pressure_rel']:.2f} %")
+                print(f"# {name} {config} batch {n}: simulate() {bps:,.0f} beats/s, jitted core {core_bps:,.0f} beats/s (x{core_bps / first[n]:.2f})"
+                      + accurate, file=sys.stderr, flush=True)
+            out["runs"].append(entry)
     print(json.dumps(out, indent=2))
 
 

@@ -8,7 +8,7 @@ The candidates (`CANDIDATES`):
 * **single**: the single-cell heart with its activation delay, as trained;
 * **series-onsets**: 5 cells in series (sharing the pressure, equal volume shares) whose
   calcium transients start at the 5, 27.5, 50, 72.5 and 95 % quantiles of the wall's activation
-  times, centred on their median (`lvenv.multielement.Arrangement.onsets`): the early cells
+  times, centred on their median (`lvenv.params.Arrangement.onsets`): the early cells
   stretch the late ones, which then pull harder (length dependence) and relax later, as the
   wall's most loaded points do (`scripts/wall_diagnosis.py`);
 * **parallel-onsets**: the same 5 onsets with the cells in parallel (sharing the volume);
@@ -16,7 +16,8 @@ The candidates (`CANDIDATES`):
   cells cost less per beat (`scripts/bench_candidates.py`), which the issue's cost goal (≤ 4×
   the single cell) needs.
 
-The anatomy sets the onsets (`fe_oracle.activation.activation_quantiles` on its oracle mesh:
+The anatomy sets the onsets (`optim.congruency.wall_arrangement`, at the quantiles of
+`lvenv.presets.onset_quantiles`; `fe_oracle.activation.activation_quantiles` on its oracle mesh:
 meshing and the eikonal solve, seconds, no mechanics). Training refits only {μ1, μ2, γ, delay}
 from the single cell's trained values (`optim.congruency.fit_active` with the arrangement, MADS
 budget ``--budget``); the passive maps stay.
@@ -41,7 +42,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import functools
 import json
 import pathlib
 import sys
@@ -51,11 +51,8 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
-from fe_oracle.activation import activation_quantiles  # noqa: E402
 from lvenv import presets  # noqa: E402
-from lvenv.geometry import Geometry  # noqa: E402
-from lvenv.multielement import Arrangement  # noqa: E402
-from lvenv.params import LOParams  # noqa: E402
+from lvenv.params import Arrangement, LOParams  # noqa: E402
 from lvenv.plots import generalisation_figure  # noqa: E402
 from lvenv.trained import builtin  # noqa: E402
 from optim import campaign, congruency  # noqa: E402
@@ -65,30 +62,9 @@ from scripts.train_presets import HEARTS  # noqa: E402
 #: The multi-element candidates: name → (arrangement kind, cells).
 ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), "series3-onsets": ("series", 3)}
 CANDIDATES = ("single", *ARRANGED)
-#: The cells start at the wall's activation times at these quantiles, evenly spaced from the
-#: first to the last, per cell count (5 cells: 5, 27.5, 50, 72.5 and 95 %).
-ONSET_RANGE = (0.05, 0.95)
 #: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
 GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
 TRAINED = (*congruency.ACTIVE_NAMES, "delay")
-
-
-def onset_quantiles(cells: int) -> tuple[float, ...]:
-    """The activation-time quantiles ``cells`` cells start at (:data:`ONSET_RANGE`)."""
-    return tuple(float(q) for q in np.linspace(*ONSET_RANGE, cells))
-
-
-def onsets(data: congruency.OracleData, cells: int = 5) -> tuple[float, ...]:
-    """The onsets of ``cells`` cells relative to the LO delay (s): the activation times of
-    ``data``'s wall at :func:`onset_quantiles`, less their median."""
-    return _onsets(data.geometry, data.beats[2].metadata["mesh_size_mm"], cells)
-
-
-@functools.cache
-def _onsets(geometry: Geometry, mesh_size_mm: float, cells: int) -> tuple[float, ...]:
-    """:func:`onsets`, computed once per wall and cell count (meshing and an eikonal solve, seconds)."""
-    q = activation_quantiles(geometry, mesh_size_mm, onset_quantiles(cells))
-    return tuple(float(x) for x in q - np.median(q))
 
 
 def arrangement(name: str, data: congruency.OracleData, lo: LOParams) -> Arrangement | None:
@@ -96,8 +72,7 @@ def arrangement(name: str, data: congruency.OracleData, lo: LOParams) -> Arrange
     if name == "single":
         return None
     kind, cells = ARRANGED[name]
-    spread = (1.0, 1.0) if kind == "series" else (lo.mu1, lo.mu1)
-    return Arrangement(kind, cells, spread=spread, onsets=onsets(data, cells))
+    return congruency.wall_arrangement(kind, cells, (1.0, 1.0) if kind == "series" else (lo.mu1, lo.mu1), data)
 
 
 def train(data: congruency.OracleData, trained: LOParams, names, budget: int) -> dict:
@@ -134,7 +109,7 @@ def dataset_mode(args, command: str) -> dict:
         data = campaign.oracle_data(campaign.DATASET, row["id"])
         trained = LOParams(**{f.name: row[f.name] for f in dataclasses.fields(LOParams)})
         fits = train(data, trained, args.candidates, args.budget)
-        results.append({"id": row["id"], "onsets_ms": [1000 * x for x in onsets(data)],
+        results.append({"id": row["id"], "onsets_ms": [1000 * x for x in congruency.wall_arrangement("series", 5, (1.0, 1.0), data).onsets],
                         **{name: _summary(lo, c, s) for name, (lo, c, _, s) in fits.items()}})
     medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
     lines = [f"Made by `{command}`: each candidate trained on each anatomy's own FE training beats (campaign dataset, "
@@ -159,7 +134,7 @@ def hearts_mode(args, command: str) -> dict:
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
         for name, (lo, c, arr, seconds) in fits.items():
-            rows = generalisation(dataclasses.replace(heart, lo=lo), scenarios, lo_arrangement=arr, progress=False, **oracle) if scenarios else []
+            rows = generalisation(dataclasses.replace(heart, lo=lo, elements=arr), scenarios, progress=False, **oracle) if scenarios else []
             entry["candidates"][name] = {"training": _summary(lo, c, seconds),
                                          "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
             traces[name] = rows
@@ -204,7 +179,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python scripts/candidate_study.py " + " ".join(sys.argv[1:])
     result = dataset_mode(args, command) if args.mode == "dataset" else hearts_mode(args, command)
-    print(json.dumps({"mode": args.mode, "budget": args.budget, "onset_quantiles": {n: onset_quantiles(c) for n, (_, c) in ARRANGED.items()}, **result}, indent=1, default=float))
+    print(json.dumps({"mode": args.mode, "budget": args.budget, "onset_quantiles": {n: presets.onset_quantiles(c) for n, (_, c) in ARRANGED.items()}, **result}, indent=1, default=float))
 
 
 if __name__ == "__main__":

@@ -10,6 +10,11 @@ the paper's question, where the four methods' point ratios disagree.
     python scripts/fit_patients.py --fidelity [--fidelity-mesh 6]  # also check each patient's best fit against the 3-D oracle
     python scripts/fit_patients.py --posterior-samples 0            # point fits only
     python scripts/fit_patients.py --importance 0                   # the flow's own draws, not reweighted
+    python scripts/fit_patients.py --model series3 --fidelity      # the 3-cell series LO heart (lvenv.presets.LO_MODELS)
+
+``--model``: the LO heart the patients' hearts carry (default the single cell). The env then runs
+that model (a multi-element one with the fixed scheme at ``--steps-per-beat``); the amortised
+posteriors, trained on the single cell, are shown for the single cell only.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import numpy as np
 from lvenv.cli import IMPORTANCE_PER_SAMPLE
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.patients import builtin
+from lvenv.presets import LO_MODELS
 from lvenv.metrics import display, header
 from lvenv.plausibility import report, resolve
 from optim.fit import fit_patients, synthetic_recovery
@@ -110,6 +116,7 @@ def print_posteriors(patients, n_samples: int, seed: int, importance: int) -> No
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--patients", nargs="+", default=["normal", "heart_failure"])
+    ap.add_argument("--model", choices=list(LO_MODELS), default="single", help="the LO heart model (lvenv.presets.LO_MODELS)")
     ap.add_argument("--methods", nargs="+", default=["mads", "cma", "kriging", "lm"])
     ap.add_argument("--budget", type=int, default=None, help="evaluations per fit of the env methods (480; synthetic: 1600); lm has its own (optim.fit.DEFAULT_OPTIONS)")
     ap.add_argument("--num-envs", type=int, default=16)
@@ -142,11 +149,16 @@ def main() -> None:
                   f" {np.median(null):10.2f} {np.min(null):5.2f}")
         print(f"singular values of d ln(targets)/du (median over truths): {np.round(np.median(rep.singular_values, 0), 2)}")
         return
-    rows = fit_patients(a.patients, a.methods, a.num_envs, a.budget or 480, a.seed, a.out, a.steps_per_beat, plausibility=a.plausibility)
+    patients = [builtin(name, a.model) for name in a.patients]
+    rows = fit_patients(patients, a.methods, a.num_envs, a.budget or 480, a.seed, a.out, a.steps_per_beat, plausibility=a.plausibility)
     table = io.StringIO()
     with contextlib.redirect_stdout(table):
+        if a.model != "single":
+            print(f"LO heart model: {a.model} ({builtin(a.patients[0], a.model).heart.elements})\n")
         print_fits(rows, a.plausibility)
-        if a.posterior_samples:
+        if a.posterior_samples and a.model != "single":
+            print(f"\n(no amortised posterior: the flow is trained on the single-cell heart, not on model {a.model!r})")
+        elif a.posterior_samples:
             print_posteriors(a.patients, a.posterior_samples, a.seed, a.importance if a.importance is not None else IMPORTANCE_PER_SAMPLE * a.posterior_samples)
     print(table.getvalue(), end="")
     Path(a.out, "fits.txt").write_text(table.getvalue())  # for `lvenv report`
@@ -154,17 +166,16 @@ def main() -> None:
     print(f"\nworst mismatch {100 * worst:.2f} % (goal < 3 %); plots in {a.out}/"
           if math.isfinite(worst) else "\nsome fit found no valid point")
     if a.fidelity:
-        print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats)
+        print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model)
 
 
-def print_fidelity(rows, mesh_size: float, beats: int) -> None:
-    """The 3-D oracle at each patient's best fit: LO, FE and their difference per target."""
-    from lvenv.patients import builtin
+def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single") -> None:
+    """The 3-D oracle at each patient's best fit (of the LO heart ``model``): LO, FE and their difference per target."""
     from optim.congruency import FIDELITY_TOLERANCE, check_fidelity
 
     for patient in dict.fromkeys(r.patient for r in rows):
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
-        heart = builtin(patient).heart.replace(**best.parameters)
+        heart = builtin(patient, model).heart.replace(**best.parameters)
         rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats)
         print(f"\nfidelity of {patient} ({best.method} fit) against the 3-D oracle (h = {mesh_size:g} mm, {beats} beats): "
               f"C {100 * rep.C:.2f} %, {'within' if rep.ok else 'OUTSIDE'} tolerance")

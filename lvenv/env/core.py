@@ -40,16 +40,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lvenv import model
+from lvenv import lo_model
 from lvenv.env.spaces import ActionMap
 from lvenv.metrics import OBS_NAMES
-from lvenv.model import IDX_PAT, IDX_PC, IDX_V, ModelParams
+from lvenv.model import ModelParams
 from lvenv.params import stack
 from lvenv.plausibility import Band, distance, distance_slope, resolve
 from lvenv.simulation import DEFAULT_STEP_TOL, run_beats_parallel
 from lvenv.status import INVALID_ACTION, is_usable
+from lvenv.validation import InputError
 
-__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "residuals", "residual_slopes", "FAILURE_REWARD", "ENV_SCHEME", "ENV_ACCELERATION"]
+__all__ = ["EnvParams", "EnvState", "Config", "reset", "step", "env_params", "check_model", "default_scheme", "residuals", "residual_slopes", "FAILURE_REWARD", "ENV_SCHEME", "ENV_ACCELERATION"]
 
 FAILURE_REWARD = -10.0
 
@@ -59,8 +60,8 @@ FAILURE_REWARD = -10.0
 class EnvParams:
     """Per-member constants: the patient's heart, cold-start state, targets and weights."""
 
-    heart: ModelParams  # leaves (N,)
-    y_cold: jax.Array  # (9, N)
+    heart: ModelParams  # leaves (N,); the multi-element heart's ElementParams (lvenv.lo_model)
+    y_cold: jax.Array  # (n_states, N): 9 for the single cell
     targets: jax.Array  # (n_obs, N), 1 where untargeted
     weights: jax.Array  # (n_obs, N), 0 where untargeted
 
@@ -68,7 +69,7 @@ class EnvParams:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class EnvState:
-    y: jax.Array  # (9, N) LO-heart state at the end of the last step (the next step's warm start)
+    y: jax.Array  # (n_states, N) LO-heart state at the end of the last step (the next step's warm start)
     steps: jax.Array  # (N,) steps taken in the current episode
     needs_reset: jax.Array  # (N,) the previous step ended this member's episode
 
@@ -77,6 +78,12 @@ class EnvState:
 #: steady state by Anderson-accelerated beats. Everything that evaluates through the env uses them.
 ENV_SCHEME = "adaptive"
 ENV_ACCELERATION = "anderson"
+
+
+def default_scheme(heart) -> str:
+    """The env's integration scheme for a Heart's LO heart model: :data:`ENV_SCHEME`, or
+    ``"fixed"`` for a multi-element heart (the adaptive scheme is the single cell's)."""
+    return ENV_SCHEME if heart.elements is None else "fixed"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,9 +113,10 @@ def _with_action(heart: ModelParams, values: jax.Array, actions: ActionMap) -> M
 def _conserve_volume(y: jax.Array, y_cold: jax.Array, heart: ModelParams) -> jax.Array:
     """Shift P_c and P_at so the closed-loop volume equals the cold start's for these params."""
     circ = heart.circ
-    volume = lambda s: s[IDX_V] + circ.C * s[IDX_PC] + circ.Cat * s[IDX_PAT]
+    i_v, i_pc, i_pat = lo_model.circulation_index(heart)
+    volume = lambda s: s[i_v] + circ.C * s[i_pc] + circ.Cat * s[i_pat]
     shift = circ.closed_loop * (volume(y_cold) - volume(y)) / (circ.C + circ.Cat)
-    return y.at[IDX_PC].add(shift).at[IDX_PAT].add(shift)
+    return y.at[i_pc].add(shift).at[i_pat].add(shift)
 
 
 def _observe(out) -> jax.Array:
@@ -224,14 +232,27 @@ def step(key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams, 
     return new_state, _noisy(_observation(metrics, shown), key, config), reward, terminated, truncated, info
 
 
+def check_model(patients, scheme: str) -> None:
+    """InputError unless the patients' hearts share one LO heart model (``Heart.elements``'s
+    :meth:`~lvenv.params.Arrangement.model_key`; their walls' onsets may differ) that ``scheme``
+    integrates (a multi-element heart: the fixed scheme only)."""
+    models = {None if p.heart.elements is None else p.heart.elements.model_key() for p in patients}
+    if len(models) > 1:
+        raise InputError(f"the patients' hearts carry different LO heart models (kind, n_elements, spread: {sorted(map(repr, models))}); "
+                         "one env holds one model")
+    (only,) = models
+    if only is not None and scheme == "adaptive":
+        raise InputError(f"scheme = 'adaptive' is not available for a multi-element heart ({patients[0].heart.elements!r}); use scheme='fixed'")
+
+
 def env_params(patients) -> EnvParams:
     """Host-side NumPy: stack the patients' hearts, cold starts, targets and weights (batch-last).
 
     Each member's weights are divided by their maximum, so Σ w ≥ 1 and huge weights cannot
     overflow (the reward and mismatch are invariant to a common scale of the weights).
     """
-    heart = model.model_params(stack([p.heart for p in patients]))
-    y_cold = model.initial_state(heart)
+    heart = lo_model.core_params(stack([p.heart for p in patients]))
+    y_cold = lo_model.initial_state(heart)
     targets = np.array([[p.targets.get(k, 1.0) for k in OBS_NAMES] for p in patients]).T
     weights = np.array([[p.weight(k) for k in OBS_NAMES] for p in patients]).T
     return EnvParams(heart, y_cold, targets, weights / weights.max(axis=0, keepdims=True))

@@ -94,10 +94,11 @@ class LVHeart:
     def params(self, patient: str | Any | Sequence[Any] = "normal") -> core.EnvParams:
         """A patient's parameters (:class:`~lvenv.env.core.EnvParams`): one member for a name,
         path, record or Patient; a leading member axis for a list (ready for ``jax.vmap``)."""
+        patients = resolve(list(patient), len(patient)) if isinstance(patient, (list, tuple)) else resolve(patient, 1)
+        core.check_model(patients, self.scheme)
         if isinstance(patient, (list, tuple)):
-            batch = core.env_params(resolve(list(patient), len(patient)))
-            return jax.tree.map(lambda x: jnp.moveaxis(jnp.asarray(x), -1, 0), batch)
-        return _drop_member_axis(jax.tree.map(jnp.asarray, core.env_params(resolve(patient, 1))))
+            return jax.tree.map(lambda x: jnp.moveaxis(jnp.asarray(x), -1, 0), core.env_params(patients))
+        return _drop_member_axis(jax.tree.map(jnp.asarray, core.env_params(patients)))
 
     def reset(self, key: jax.Array, params: core.EnvParams) -> tuple[jax.Array, core.EnvState]:
         """The patient's own parameters at steady state from a cold start: ``(obs, state)``."""

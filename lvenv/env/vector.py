@@ -19,13 +19,12 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
-from lvenv import status
+from lvenv import lo_model, status
 from lvenv.devices import shard_members
 from lvenv.env import core
 from lvenv.env.spaces import ActionMap, observation_space
 from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.metrics import FRAME_NAMES, OBS_NAMES
-from lvenv.model import N_STATES
 from lvenv.patients import Patient, resolve
 from lvenv.plausibility import Band
 from lvenv.plausibility import resolve as resolve_bands
@@ -160,6 +159,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.patients = resolve(patient, num_envs)
+        core.check_model(self.patients, settings["scheme"])
         if volume_trace is None:
             volume_trace = any(_traced(p) for p in self.patients)
         elif not isinstance(volume_trace, (bool, np.bool_)):
@@ -210,7 +210,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
             if not isinstance(options, dict) or set(options) - {"patient"}:
                 raise InputError(f"reset options = {options!r}: the only option is 'patient'")
             if "patient" in options:
-                self.patients = resolve(options["patient"], self.num_envs)
+                patients = resolve(options["patient"], self.num_envs)
+                core.check_model(patients, self.config.scheme)
+                self.patients = patients
                 self._host_params = core.env_params(self.patients)
                 self._params, _ = shard_members(self._host_params, self.num_envs)
         super().reset(seed=seed)
@@ -276,7 +278,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before set_state()")
         n, k = self.num_envs, len(self.action_names)
-        expected = dict(zip(STATE_FIELDS, ((n, N_STATES), (n,), (n,), np.shape(self._key), (n, k))))
+        expected = dict(zip(STATE_FIELDS, ((n, lo_model.n_states(self._host_params.heart)), (n,), (n,), np.shape(self._key), (n, k))))
         if not isinstance(state, dict) or set(state) != set(expected):
             raise InputError(f"state must be a dict with the fields {sorted(expected)}, got {sorted(state) if isinstance(state, dict) else type(state).__name__}")
         arrays = {}
@@ -311,6 +313,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         if given != len(idx) or isinstance(patients, (str, dict, Patient)):
             raise InputError(f"replace_patients needs one patient per member: got {given} for the {len(idx)} members {idx.tolist()}")
         new = resolve(list(patients), len(idx))
+        core.check_model([self.patients[0], *new], self.config.scheme)
         if not self.config.volume_trace and any(map(_traced, new)):
             raise InputError("a new patient targets the volume trace, which this env does not record; create it with volume_trace=True")
         for i, patient in zip(idx, new):
@@ -331,7 +334,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         return self.patients[i].heart.replace(**{k: float(v[i]) for k, v in self.parameters.items()})
 
     def member_state(self, i: int) -> np.ndarray:
-        """Member i's LO-heart state (9,) at the end of its last step."""
+        """Member i's LO-heart state (9,; 7 n + 4 for n elements) at the end of its last step."""
         return self.get_state()["y"][integer("member index i", i, 0, self.num_envs - 1)]
 
     def render(self):

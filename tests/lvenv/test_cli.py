@@ -42,6 +42,9 @@ def test_help_of_every_command_works(argv, capsys):
         (["fit", "normal", "--map-draws", "1"], "--map-draws needs at least 2 draws"),
         (["cohort", "r.csv", "--out", "o.csv", "--maps", "gp"], "'gp' is not one of"),
         (["fit", "normal", "--posterior", "mcmc"], "'mcmc' is not one of 'amortised', 'importance'"),
+        (["fit", "p.json", "--model", "series3"], "--model series3: a patient record carries its own LO heart model"),
+        (["fit", "normal", "--model", "series3", "--scheme", "adaptive"], "scheme = 'adaptive' is not available for a multi-element heart"),
+        (["simulate", "--model", "series2"], "'series2' is not one of 'single', 'series3'"),
     ],
 )
 def test_usage_errors_exit_2_and_name_the_problem(argv, message, capsys):
@@ -67,6 +70,16 @@ def test_a_patient_file_is_simulated(tmp_path, capsys):
     builtin("heart_failure").to_json(path)
     assert cli.main(["simulate", "--patient", str(path), "--beats", "1", "--json"]) == cli.EXIT_OK
     assert json.loads(capsys.readouterr().out)["status"] == "ok"
+
+
+def test_simulate_runs_the_model_asked_for(capsys):
+    import lvenv
+    from lvenv import presets
+
+    assert cli.main(["simulate", "--model", "series3", "--beats", "1", "--steps-per-beat", "200", "--json"]) == cli.EXIT_OK
+    payload = json.loads(capsys.readouterr().out)
+    expected = lvenv.simulate(presets.normal(model="series3"), beats=1, steps_per_beat=200)
+    assert payload["status"] == "ok" and payload["metrics"]["EF"] == pytest.approx(float(expected.metrics["EF"]), rel=1e-12)
 
 
 def test_an_internal_error_exits_3_with_the_traceback(monkeypatch, capsys):

@@ -120,7 +120,7 @@ def test_arrow_solve_equals_dense_jacobian_solve(kind):
     heart = presets.training_condition(2, TABLE3)
     arr = me.Arrangement(kind, 5)
     p = jax.tree.map(jnp.asarray, me.element_params(as_batch(heart)[0], arr))
-    s0 = me.initial_state(p, kind)
+    s0 = me.initial_state(p)
     rng = np.random.default_rng(3)
     cells = np.array(s0.cells)
     cells[0] = 0.6  # CaTRPN: calcium bound

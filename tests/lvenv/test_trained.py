@@ -10,10 +10,29 @@ from lvenv.validation import InputError
 
 
 def test_the_shipped_records_round_trip(tmp_path):
-    for name in ("normal", "heart_failure"):
+    for name in ("normal", "heart_failure", "normal_series3", "heart_failure_series3"):
         record = trained.builtin(name)
         record.to_json(tmp_path / f"{name}.json")
         assert TrainedLO.from_json(tmp_path / f"{name}.json") == record
+        assert record.heart().elements == record.elements
+
+
+def test_the_series3_records_carry_their_wall_and_the_single_cells_passive_maps():
+    """Each 3-cell record: the single-cell record's wall, cell and passive maps (train_model
+    refits the active ones only), and its own onsets, increasing, with the median cell at 0."""
+    for name in ("normal", "heart_failure"):
+        single, series = trained.builtin(name), trained.builtin(f"{name}_series3")
+        assert single.elements is None and series.elements.kind == "series" and series.elements.n_elements == 3
+        assert (series.geometry, series.cell, series.passive_rmse_ml) == (single.geometry, single.cell, single.passive_rmse_ml)
+        assert all(getattr(series.lo, n) == getattr(single.lo, n) for n in ("alpha", "beta", "a", "b", "c"))
+        early, median, late = series.elements.onsets
+        assert early < median == 0.0 < late
+
+
+def test_a_record_without_elements_is_the_single_cell():
+    record = trained.builtin("normal").to_dict()
+    record.pop("elements")
+    assert TrainedLO.from_dict(record).elements is None
 
 
 def _drop(part, field):
@@ -40,6 +59,9 @@ def _set(part, field, value):
         (lambda r: r.__setitem__("lo", [0.1, 0.2]), r"lo = \[0.1, 0.2\] must be an object"),
         (lambda r: r.__setitem__("passive_rmse_ml", "small"), r"passive_rmse_ml = 'small' must be a finite real number ≥ 0"),
         (_set("congruency", "C", "good"), r"congruency\['C'\] = 'good' must be a finite real number ≥ 0"),
+        (lambda r: r.__setitem__("elements", "series"), r"elements = 'series' must be null \(the single-cell heart\) or an object"),
+        (lambda r: r.__setitem__("elements", {"kind": "series", "n_elements": 3, "onsets": [0.0]}), r"elements: onsets = \(0.0,\) must give one onset"),
+        (lambda r: r.__setitem__("elements", {"kind": "ring"}), r"arrangement = 'ring' is not one of 'parallel', 'series'"),
     ],
 )
 def test_a_damaged_record_is_refused_naming_the_field(tmp_path, damage, message):

@@ -195,3 +195,20 @@ def test_a_dask_local_cluster_gives_the_same_fits_as_one_process(reports_csv, tm
     assert summary["fitted"] == 4
     assert _rows(split) == _rows(single)
     assert json.loads((tmp_path / "split.csv.json").read_text())["options"]["slots"] == 1
+
+
+def test_a_multi_element_base_heart_fits_rows_of_its_own_wall_and_refuses_other_geometries(tmp_path):
+    """A cohort on the 3-cell series heart (the fixed scheme): a row without geometry fits that
+    heart and its reported fit is its steady state; a row with its own geometry is a bad row
+    naming the columns (the cells' onsets belong to the base heart's wall)."""
+    from lvenv import presets
+
+    base = presets.normal(model="series3")
+    path = _write(tmp_path / "r.csv", [[*GOOD, ""], ["B", *GOOD[1:], "40"]], [*HEADER, "Rb_mm"])
+    parsed = read_reports(path, base=base)
+    (row,) = parsed.rows
+    assert row.patient.heart.elements == base.elements
+    assert [b.line for b in parsed.bad] == [3] and "Rb_mm: the base heart is a multi-element heart" in parsed.bad[0].reason
+    options = dataclasses.replace(SMALL, budget=8, scheme="fixed")
+    (result,) = fit_reports([row], options)
+    _check_reported_fit_against_an_independent_simulation(result, row.patient, options)
