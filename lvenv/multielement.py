@@ -133,9 +133,10 @@ _N_GLOBAL = 3  # V, P_c, P_at
 @dataclasses.dataclass(frozen=True)
 class ElementParams(model.ModelParams):
     """What the jitted core needs: V0 (ml) and the three parts per member ``(B,)`` (as
-    :class:`lvenv.model.ModelParams`, whose ``get`` and ``replace`` it shares), the per-element
-    μ1_ξ, w_ξ and calcium onset (s, relative to the LO delay) ``(n, B)``, and the arrangement's
-    ``kind`` (static)."""
+    :class:`lvenv.model.ModelParams`, whose ``get`` and ``replace`` it shares), per element
+    ``(n, B)`` ``mu1`` (parallel: μ1_ξ; series: μ1_ξ / μ1, 1, so that the heart's μ1, which
+    ``replace`` and :func:`lvenv.jacobian` reach, sets every element's), w_ξ and the calcium onset
+    (s, relative to the LO delay), and the arrangement's ``kind`` (static)."""
 
     mu1: jax.Array
     w: jax.Array
@@ -166,7 +167,7 @@ def element_params(heart: Heart, arrangement: Arrangement) -> ElementParams:
     if arrangement.kind == "parallel":
         mu1, w = values, np.ones_like(values)
     else:
-        mu1, w = np.broadcast_to(np.asarray(mp.lo.mu1, float), values.shape).copy(), values
+        mu1, w = np.ones_like(values), values
     onsets = arrangement.element_onsets()
     if onsets.ndim == 2 and len(onsets) != n_members:
         raise InputError(f"elements.onsets has {len(onsets)} rows (one per member) for a batch of {n_members} members")
@@ -174,8 +175,13 @@ def element_params(heart: Heart, arrangement: Arrangement) -> ElementParams:
     return ElementParams(v0=mp.v0, lo=mp.lo, cell=mp.cell, circ=mp.circ, mu1=mu1, w=w, onset=onset, kind=arrangement.kind)
 
 
+def _element_mu1(p: ElementParams):
+    """μ1_ξ, ``(n, B)``."""
+    return p.mu1 if p.kind == "parallel" else p.mu1 * p.lo.mu1
+
+
 def _element_lo(p: ElementParams) -> LOParams:
-    return dataclasses.replace(p.lo, mu1=p.mu1)
+    return dataclasses.replace(p.lo, mu1=_element_mu1(p))
 
 
 def _zeta_form(cells, lam, k: cell.Rates):
@@ -296,7 +302,7 @@ def _linearise(kind: str, p: ElementParams, k: cell.Rates, ca, cells, glob, v_el
     n = cells.shape[1]
     _, d, t, lam, y = _element_pressures(cells, v_el, p, k)
     j_cell, d_lam, _ = cell.jacobian(y, ca, lam, p.cell, k)
-    dlam_dv = p.mu1 / p.v0
+    dlam_dv = _element_mu1(p) / p.v0
     # ∂f/∂λ in ζ̃ form: the explicit λ-dependence plus ζ = ζ̃ + A λ
     shape = v_el.shape
     f_lam = [dl + k.a_eff * (j_cell[i][_ZS] + j_cell[i][_ZW]) for i, dl in enumerate(d_lam)]

@@ -97,11 +97,11 @@ def test_what_a_multi_element_heart_cannot_do_is_refused_by_name():
 
 
 def test_jacobian_of_the_multi_element_heart_matches_finite_differences():
-    """d EF / d τ2 and d ET / d Sa by the implicit-function method over the flat state, against
+    """d EF / d τ2, d ET / d Sa and d EF / d μ1 by the implicit-function method over the flat state, against
     central differences of steady states (relative step 1e-3: kinks of the step grid are O(h))."""
-    jac = lvenv.jacobian(SERIES3, wrt=("tau2", "Sa"), metrics=("EF", "ET"), steps_per_beat=STEPS)
+    jac = lvenv.jacobian(SERIES3, wrt=("tau2", "Sa", "mu1"), metrics=("EF", "ET"), steps_per_beat=STEPS)
     assert jac.status == "ok"
-    for metric, name in (("EF", "tau2"), ("ET", "Sa")):
+    for metric, name in (("EF", "tau2"), ("ET", "Sa"), ("EF", "mu1")):  # the heart's μ1 sets its cells' (series)
         value = SERIES3.get(name)
         step = 1e-3 * value
         sims = lvenv.simulate([SERIES3.replace(**{name: value + step}), SERIES3.replace(**{name: value - step})],
