@@ -169,7 +169,7 @@ def generalisation_figure(rows: list[Mapping], path: str | os.PathLike[str], col
             ax.plot(r["oracle"]["t"], show(r["oracle"][key]), "k-", lw=1.2, label="FE")
             ax.plot(r["lo"]["t"], show(r["lo"][key]), "C3--", lw=1.2, label="LO")
             for c, (label, tr) in enumerate(r.get("candidates", {}).items()):
-                ax.plot(tr["t"], show(tr[key]), color=f"C{c}", ls=":", lw=1.2, label=label)
+                ax.plot(tr["t"], show(tr[key]), color=f"C{c if c < 3 else c + 1}", ls=":", lw=1.2, label=label)  # C3: the LO line
             if i == 0 and k == 0 and r.get("candidates"):
                 ax.legend(fontsize=6)
             ax.set_title(f"{r['heart']} {r['scenario']}\nC {100 * r['C']:.1f} %" if k == 0 else "", fontsize=8)

@@ -14,7 +14,9 @@ The candidates (`CANDIDATES`):
 * **parallel-onsets**: the same 5 onsets with the cells in parallel (sharing the volume);
 * **series3-onsets**: 3 cells in series with onsets at the 5, 50 and 95 % quantiles: fewer
   cells cost less per beat (`scripts/bench_candidates.py`), which the issue's cost goal (≤ 4×
-  the single cell) needs.
+  the single cell) needs; the model shipped as `lvenv.presets.LO_MODELS["series3"]`;
+* **series2-onsets**, **series4-onsets**: 2 and 4 cells in series (quantiles evenly spaced over
+  5–95 %), to see how C depends on the number of cells.
 
 The anatomy sets the onsets (`optim.congruency.wall_arrangement`, at the quantiles of
 `lvenv.presets.onset_quantiles`; `fe_oracle.activation.activation_quantiles` on its oracle mesh:
@@ -60,7 +62,8 @@ from optim.studies import UNSEEN, generalisation  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 #: The multi-element candidates: name → (arrangement kind, cells).
-ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), "series3-onsets": ("series", 3)}
+ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), "series3-onsets": ("series", 3),
+            "series2-onsets": ("series", 2), "series4-onsets": ("series", 4)}
 CANDIDATES = ("single", *ARRANGED)
 #: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
 GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
