@@ -15,9 +15,10 @@ import numpy as np
 
 from lvenv import model, multielement
 from lvenv.model import ModelParams
-from lvenv.params import Heart
+from lvenv.params import Arrangement, Heart
+from lvenv.validation import InputError
 
-__all__ = ["core_params", "initial_state", "n_states", "circulation_index", "is_multielement"]
+__all__ = ["core_params", "initial_state", "n_states", "circulation_index", "is_multielement", "check_scheme"]
 
 
 def core_params(heart: Heart) -> ModelParams:
@@ -41,14 +42,21 @@ def initial_state(p: ModelParams) -> np.ndarray:
 
 def n_states(p: ModelParams) -> int:
     """Rows of ``p``'s state."""
-    return multielement.n_states(np.shape(p.mu1)[0]) if is_multielement(p) else model.N_STATES
+    return multielement.n_states(p.n_elements) if is_multielement(p) else model.N_STATES
 
 
 def circulation_index(of: ModelParams | Heart) -> tuple[int, int, int]:
     """Rows of V (ml), P_c and P_at (kPa) in the state of ``of``'s model (its parameters,
     :func:`core_params`, or a Heart: e.g. in :attr:`lvenv.SimulationResult.final_state`)."""
-    if isinstance(of, Heart) and of.elements is not None:
-        return multielement.circulation_index(of.elements.n_elements)
-    if not isinstance(of, Heart) and is_multielement(of):
-        return multielement.circulation_index(np.shape(of.mu1)[0])
-    return model.IDX_V, model.IDX_PC, model.IDX_PAT
+    if isinstance(of, Heart):
+        n = None if of.elements is None else of.elements.n_elements
+    else:
+        n = of.n_elements if is_multielement(of) else None
+    return (model.IDX_V, model.IDX_PC, model.IDX_PAT) if n is None else multielement.circulation_index(n)
+
+
+def check_scheme(elements: Arrangement | None, scheme: str) -> None:
+    """InputError if ``scheme`` (:data:`lvenv.simulation.SCHEMES`) cannot integrate the LO heart
+    model ``elements`` (``Heart.elements``): a multi-element heart takes the fixed scheme only."""
+    if elements is not None and scheme == "adaptive":
+        raise InputError(f"scheme = 'adaptive' is not available for a multi-element heart (elements = {elements!r}); use scheme='fixed'")

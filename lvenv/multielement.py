@@ -99,7 +99,7 @@ from lvenv import cell, circulation, coupling, events, model, status
 from lvenv.integrator import GAMMA, is_zero, lu_factor, lu_solve
 from lvenv.metrics import METRIC_NAMES
 from lvenv.params import ARRANGEMENTS, DEFAULT_SPREAD, MAX_ELEMENTS, MAX_ONSET_S, Arrangement, Heart, LOParams, as_batch
-from lvenv.validation import InputError, integer, real
+from lvenv.validation import integer, real
 
 __all__ = [
     "ARRANGEMENTS",
@@ -143,6 +143,11 @@ class ElementParams(model.ModelParams):
     onset: jax.Array
     kind: str
 
+    @property
+    def n_elements(self) -> int:
+        """Number of elements (static: the leading axis of the per-element arrays)."""
+        return np.shape(self.mu1)[0]
+
 
 jax.tree_util.register_dataclass(ElementParams, data_fields=["v0", "lo", "cell", "circ", "mu1", "w", "onset"], meta_fields=["kind"])
 
@@ -168,11 +173,7 @@ def element_params(heart: Heart, arrangement: Arrangement) -> ElementParams:
         mu1, w = values, np.ones_like(values)
     else:
         mu1, w = np.ones_like(values), values
-    onsets = arrangement.element_onsets()
-    if onsets.ndim == 2 and len(onsets) != n_members:
-        raise InputError(f"elements.onsets has {len(onsets)} rows (one per member) for a batch of {n_members} members")
-    onset = onsets.T.copy() if onsets.ndim == 2 else onsets[:, None] * np.ones(n_members)  # per member: one row each (lvenv.params.stack)
-    return ElementParams(v0=mp.v0, lo=mp.lo, cell=mp.cell, circ=mp.circ, mu1=mu1, w=w, onset=onset, kind=arrangement.kind)
+    return ElementParams(v0=mp.v0, lo=mp.lo, cell=mp.cell, circ=mp.circ, mu1=mu1, w=w, onset=arrangement.member_onsets(n_members), kind=arrangement.kind)
 
 
 def _element_mu1(p: ElementParams):
@@ -235,14 +236,14 @@ def _element_pressures(cells, v_el, p: ElementParams, k: cell.Rates):
     return p_el, d, t, lam, y
 
 
-def _algebraic(kind: str, p: ElementParams, k: cell.Rates, cells, v, v_el, p_lv, tol):
+def _algebraic(p: ElementParams, k: cell.Rates, cells, v, v_el, p_lv, tol):
     """(V_ξ, P, residual max_ξ abs(P_ξ − P) (B,), Newton iterations) at differential states (cells, V).
 
     Parallel: explicit. Series: Newton from the guess (``v_el``, ``p_lv``) until the residual is
     below ``tol`` (kPa) for every member, at most 20 iterations; a member stops at its first
     iterate below ``tol``, however many its neighbours need.
     """
-    if kind == "parallel":
+    if p.kind == "parallel":
         v_el = jnp.broadcast_to(v, v_el.shape)
         p_el = _element_pressures(cells, v_el, p, k)[0]
         return v_el, jnp.mean(p_el, axis=0), jnp.zeros_like(v), jnp.zeros(v.shape, jnp.int32)
@@ -297,8 +298,8 @@ def _dot(rho: list, x) -> jax.Array:
     return sum(jnp.sum(r * x[j], axis=0) for j, r in enumerate(rho) if not is_zero(r))
 
 
-def _linearise(kind: str, p: ElementParams, k: cell.Rates, ca, cells, glob, v_el, p_lv, f_cells, f_glob, h) -> _Linearisation:
-    gh = GAMMA * h
+def _linearise(p: ElementParams, k: cell.Rates, ca, cells, glob, v_el, p_lv, f_cells, f_glob, h) -> _Linearisation:
+    gh, kind = GAMMA * h, p.kind
     n = cells.shape[1]
     _, d, t, lam, y = _element_pressures(cells, v_el, p, k)
     j_cell, d_lam, _ = cell.jacobian(y, ca, lam, p.cell, k)
@@ -353,25 +354,26 @@ def _predict(kind: str, lin: _Linearisation, v_el, p_lv, d_cells, d_glob, d_p):
     return v_el + (d_p - tx) / lin.d, p_lv + d_p
 
 
-def _step(kind, p, k, state: State, h, ca0, ca1, dca0, tol):
+def _step(p: ElementParams, k, state: State, h, ca0, ca1, dca0, tol):
     """One ROS2 step (module docstring) → (state, max constraint residual (B,), Newton iterations)."""
     gh = GAMMA * h
     cells, glob, v_el, p_lv = state
     f_cells, f_glob = _rhs(p, k, ca0, cells, glob, v_el, p_lv)
-    lin = _linearise(kind, p, k, ca0, cells, glob, v_el, p_lv, f_cells, f_glob, h)
+    kind = p.kind  # of the arrow solve and the prediction
+    lin = _linearise(p, k, ca0, cells, glob, v_el, p_lv, f_cells, f_glob, h)
     lam = coupling.stretch(v_el, p.v0, _element_lo(p))
     y = _zeta_form(cells, lam, k)
     forcing = gh * jax.jvp(lambda c: cell.derivatives(y, c, lam, 0.0, p.cell, k), (ca0,), (dca0,))[1]
     k1c, k1g, p1 = _solve(kind, lin, gh, f_cells + forcing, f_glob)
     cells1, glob1 = cells + h * k1c, glob + h * k1g
     v_el1, p_lv1 = _predict(kind, lin, v_el, p_lv, h * k1c, h * k1g, h * p1)
-    v_el1, p_lv1, res1, it1 = _algebraic(kind, p, k, cells1, glob1[0], v_el1, p_lv1, tol)
+    v_el1, p_lv1, res1, it1 = _algebraic(p, k, cells1, glob1[0], v_el1, p_lv1, tol)
     f1_cells, f1_glob = _rhs(p, k, ca1, cells1, glob1, v_el1, p_lv1)
     k2c, k2g, p2 = _solve(kind, lin, gh, f1_cells - 2.0 * k1c - forcing, f1_glob - 2.0 * k1g)
     d_cells, d_glob, d_p = 1.5 * h * k1c + 0.5 * h * k2c, 1.5 * h * k1g + 0.5 * h * k2g, 1.5 * h * p1 + 0.5 * h * p2
     cells2, glob2 = cells + d_cells, glob + d_glob
     v_el2, p_lv2 = _predict(kind, lin, v_el, p_lv, d_cells, d_glob, d_p)
-    v_el2, p_lv2, res2, it2 = _algebraic(kind, p, k, cells2, glob2[0], v_el2, p_lv2, tol)
+    v_el2, p_lv2, res2, it2 = _algebraic(p, k, cells2, glob2[0], v_el2, p_lv2, tol)
     return State(cells2, glob2, v_el2, p_lv2), jnp.maximum(res1, res2), it1 + it2
 
 
@@ -410,7 +412,7 @@ def _beat(p: ElementParams, k: cell.Rates, carry: dict, steps: int, newton_tol, 
     def step(c, n):
         t0, t1 = n * h, (n + 1) * h
         ca0, ca1 = coupling.calcium(t0, lo_el, p.cell, norm), coupling.calcium(t1, lo_el, p.cell, norm)
-        state, res, it = _step(p.kind, p, k, c["state"], h, ca0, ca1, coupling.calcium_rate(t0, lo_el, p.cell, norm), newton_tol)
+        state, res, it = _step(p, k, c["state"], h, ca0, ca1, coupling.calcium_rate(t0, lo_el, p.cell, norm), newton_tol)
         acc = events.update(c["acc"], t1, *_sample(p, state))
         lam = _stretch_range(p, state)
         stretch = jnp.stack([jnp.minimum(c["stretch"][0], lam[0]), jnp.maximum(c["stretch"][1], lam[1])])
@@ -429,7 +431,7 @@ def _beat(p: ElementParams, k: cell.Rates, carry: dict, steps: int, newton_tol, 
 
 def _start(p: ElementParams, k: cell.Rates, state0: State, newton_tol) -> dict:
     """:func:`_beat`'s carry at ``state0``, its algebraic part solved at its differential states."""
-    v_el, p_lv, res0, it0 = _algebraic(p.kind, p, k, state0.cells, state0.circ[0], state0.v_el, state0.p_lv, newton_tol)
+    v_el, p_lv, res0, it0 = _algebraic(p, k, state0.cells, state0.circ[0], state0.v_el, state0.p_lv, newton_tol)
     state = State(state0.cells, state0.circ, v_el, p_lv)
     return {"state": state, "residual": res0, "residual_max": res0, "iterations": it0, "stretch": _stretch_range(p, state)}
 
@@ -473,7 +475,7 @@ def run(p: ElementParams, state0: State, newton_tol, *, steps: int, beats: int, 
 
 def n_states(n_elements: int) -> int:
     """Length of a multi-element heart's flat state (:func:`flatten`): 7 n + 4."""
-    return 7 * n_elements + 4
+    return (cell.N_STATES + 1) * n_elements + _N_GLOBAL + 1
 
 
 def circulation_index(n_elements: int) -> tuple[int, int, int]:
@@ -515,7 +517,7 @@ def beat(p: ElementParams, y0, steps: int, record: bool, volume_trace: bool = Tr
     loops report it ``diverged``, as :func:`run` does).
     """
     k = cell.rates(p.cell)
-    carry = _start(p, k, unflatten(y0, p.mu1.shape[0]), NEWTON_TOL)
+    carry = _start(p, k, unflatten(y0, p.n_elements), NEWTON_TOL)
     out, metrics, valid, traces = _beat(p, k, carry, steps, NEWTON_TOL, record, volume_trace)
     return flatten(out["state"]), metrics, valid, None if traces is None else traces[:3], out["residual_max"] <= NEWTON_TOL
 
@@ -553,7 +555,7 @@ def simulate(
     beats: int = 1,
     steps_per_beat: int = 1000,
     traces: bool = True,
-    newton_tol: float = 1e-10,
+    newton_tol: float = NEWTON_TOL,
 ) -> MultiElementResult:
     """Simulate ``beats`` beats of the multi-element heart(s) from the training-protocol state.
 

@@ -165,6 +165,16 @@ class Arrangement:
         ``(members, n_elements)`` for per-member onsets."""
         return np.zeros(self.n_elements) if self.onsets is None else np.array(self.onsets, float)
 
+    def member_onsets(self, n_members: int) -> np.ndarray:
+        """Each member's element onsets (s), ``(n_elements, n_members)``: the one row for every
+        member, or one row each; :class:`~lvenv.validation.InputError` if the rows are not one per member."""
+        onsets = self.element_onsets()
+        if onsets.ndim == 1:
+            return onsets[:, None] * np.ones(n_members)
+        if len(onsets) != n_members:
+            raise InputError(f"elements.onsets has {len(onsets)} rows (one per member) for a batch of {n_members} members")
+        return onsets.T.copy()
+
     def element_values(self) -> np.ndarray:
         """μ1_ξ (parallel) or w_ξ (series), shape ``(n_elements,)``."""
         lo, hi = self.spread
@@ -319,9 +329,8 @@ def _check(heart: Heart) -> int | None:
     a, b, c = (np.asarray(v, float) for v in (lo.a, lo.b, lo.c))
     if np.any(bad := (b < 0) & (b * b >= 3 * a * c)):
         raise InputError(f"lo.b = {float(np.ravel(b)[np.flatnonzero(bad.ravel())[0]]):g} kPa makes Ppass non-monotone for V > V0 (need b² < 3ac){_member(b, bad)}")
-    onsets = None if heart.elements is None else heart.elements.element_onsets()
-    if onsets is not None and onsets.ndim == 2 and len(onsets) != (size or 1):
-        raise InputError(f"elements.onsets has {len(onsets)} rows (one per member) for a batch of {size or 1} members")
+    if heart.elements is not None:
+        heart.elements.member_onsets(size or 1)
     cavity_volumes(heart)
     return size
 

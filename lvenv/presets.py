@@ -30,7 +30,7 @@ from lvenv.geometry import Geometry
 from lvenv.params import Circulation, Heart, LOParams
 from lvenv.validation import InputError, choice
 
-__all__ = ["normal", "heart_failure", "LO_SETS", "LO_MODELS", "ONSET_RANGE", "onset_quantiles", "lo_params", "training_circulation", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
+__all__ = ["normal", "heart_failure", "LO_SETS", "LO_MODELS", "MULTI_ELEMENT_MODELS", "record_name", "ONSET_RANGE", "onset_quantiles", "lo_params", "training_circulation", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
 
 N_UNLOADED = Geometry(Rb=35.0, L=9.6, Z=54.0, H=12.0, e=0.70, C0=-53.0)
 HF_UNLOADED = Geometry(Rb=38.0, L=10.0, Z=49.0, H=7.7, e=0.66, C0=-64.0)
@@ -53,6 +53,8 @@ LO_SETS = ("trained", "table3")
 #: The LO heart models with shipped maps: name → ``None`` (the single cell) or the multi-element
 #: arrangement's (kind, cells, spread of the volume shares w_ξ) (module docstring).
 LO_MODELS = {"single": None, "series3": ("series", 3, (1.0, 1.0))}
+#: The multi-element ones among :data:`LO_MODELS` (trained from the single cell's records).
+MULTI_ELEMENT_MODELS = tuple(name for name, spec in LO_MODELS.items() if spec is not None)
 #: A multi-element model's cells start at the wall's activation times at quantiles evenly
 #: spaced over this range (:func:`onset_quantiles`).
 ONSET_RANGE = (0.05, 0.95)
@@ -70,6 +72,12 @@ def _trained_record(name: str) -> trained.TrainedLO:
 
 def _trained(name: str) -> LOParams:
     return _trained_record(name).lo
+
+
+def record_name(heart: str, model: str = "single") -> str:
+    """The name of the shipped trained record (:func:`lvenv.trained.builtin`) of preset ``heart``
+    and LO heart ``model``: ``heart``, or ``<heart>_<model>`` for a multi-element model."""
+    return heart if model == "single" else f"{heart}_{model}"
 
 
 def lo_params(heart: str, lo: str = "trained") -> LOParams:
@@ -99,7 +107,7 @@ def _preset(heart: str, geometry: Geometry, lo: str, model: str) -> Heart:
         return Heart(geometry=geometry, lo=lo_params(heart, lo), circulation=Circulation())
     if choice("lo", lo, LO_SETS) != "trained":
         raise InputError(f"lo = {lo!r}: model {model!r} has trained maps only (lo='trained')")
-    return _trained_record(f"{heart}_{model}").heart()
+    return _trained_record(record_name(heart, model)).heart()
 
 
 def training_circulation(k: int, base: Circulation | None = None) -> Circulation:

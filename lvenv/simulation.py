@@ -190,7 +190,7 @@ def _state_scale(p: ModelParams, dtype) -> jax.Array:
     element, the member's V0 for V and each V_ξ, and 1 kPa for P_c, P_at and P_lv."""
     if not lo_model.is_multielement(p):
         return jnp.stack([p.v0 if i == IDX_V else jnp.full_like(p.v0, s) for i, s in enumerate(_ERROR_SCALE)]).astype(dtype)
-    n = p.mu1.shape[0]
+    n = p.n_elements
     cells = np.repeat(_ERROR_SCALE[: cell.N_STATES], n)
     scale = [jnp.full_like(p.v0, s) for s in cells] + [p.v0, jnp.ones_like(p.v0), jnp.ones_like(p.v0)] + [p.v0] * n + [jnp.ones_like(p.v0)]
     return jnp.stack(scale).astype(dtype)
@@ -654,8 +654,7 @@ def simulate(
         raise InputError("traces = True needs scheme = 'fixed' (the adaptive scheme's steps differ per member); pass traces=False")
     dtype = choice("dtype", jnp.dtype(dtype) if _is_dtype(dtype) else dtype, (jnp.dtype(jnp.float64), jnp.dtype(jnp.float32)))
     heart, single = as_batch(params)
-    if heart.elements is not None and settings["scheme"] == "adaptive":
-        raise InputError(f"scheme = 'adaptive' is not available for a multi-element heart (elements = {heart.elements!r}); use scheme='fixed'")
+    lo_model.check_scheme(heart.elements, settings["scheme"])
     if heart.elements is not None and dtype != jnp.dtype(jnp.float64):
         raise InputError(f"dtype = {dtype}: a multi-element heart runs in float64 (its series Newton tolerance is {multielement.NEWTON_TOL:g} kPa)")
     p = lo_model.core_params(heart)

@@ -364,7 +364,7 @@ def train_model(data: OracleData, single: TrainedLO, model: str, *, budget: int 
     :func:`fit_active` (MADS ``budget``) from ``single``'s values; the passive maps, and so the
     passive fit's residual, stay ``single``'s (the models' passive curves are equal for equal
     volume shares, w = 1)."""
-    choice("model", model, tuple(m for m, spec in presets.LO_MODELS.items() if spec is not None))
+    choice("model", model, presets.MULTI_ELEMENT_MODELS)
     if single.elements is not None or single.geometry != data.geometry:
         raise InputError(f"train_model starts from a single-cell record of the same wall (got elements = {single.elements!r}, "
                          f"geometry {single.geometry} for data of {data.geometry})")

@@ -33,7 +33,7 @@ from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME, default_scheme
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS
 from lvenv.params import Heart
-from lvenv.patients import Patient, builtin
+from lvenv.patients import Patient, builtin, resolve
 from lvenv.plausibility import Band, inside_bands
 from optim.minimize import MinimizeResult, minimize
 
@@ -73,8 +73,8 @@ def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, ste
     ``steps_per_beat`` applies to ``scheme="fixed"`` only. ``plausibility``: the objective's
     physiological bands (:mod:`lvenv.plausibility`; default on)."""
     if scheme is None:
-        first = patient[0] if isinstance(patient, Sequence) and not isinstance(patient, str) else patient
-        scheme = default_scheme(_patient(first).heart)
+        first = patient[0] if isinstance(patient, (list, tuple)) and patient else patient
+        scheme = default_scheme(resolve(first, 1)[0].heart)  # a name, path, record or Patient, as the env reads it
     return gymnasium.make_vec(
         "lvenv/LVHeart-v0", num_envs=num_envs, patient=patient, max_episode_steps=None, tolerance=0.0,
         autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme,

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from lvenv import trained
+from lvenv import presets, trained
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.plots import histogram_figure
 from optim.cohort import summarise
@@ -76,7 +76,7 @@ def _training() -> list[str]:
              "`python scripts/train_presets.py --model series3`); read from the records shipped in `lvenv/data/`, each trained on "
              "the date in its row.", "",
              "| heart | C ① | C ② | C ③ | C | C without the delay | delay (ms) | backend, mesh | trained |", "|---|---|---|---|---|---|---|---|---|"]
-    for name in ("normal", "heart_failure", "normal_series3", "heart_failure_series3"):
+    for name in (presets.record_name(heart, model) for model in presets.LO_MODELS for heart in ("normal", "heart_failure")):
         record = trained.builtin(name)
         c, without = record.congruency, record.congruency_without_delay or {}
         cells = [f"{100 * c[k]:.2f} %" for k in ("1", "2", "3", "C")]

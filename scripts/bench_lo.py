@@ -23,6 +23,7 @@ reference: its ``error_vs_radau`` is null).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import pathlib
 import sys
@@ -48,8 +49,11 @@ BEATS = 2
 def cohort(n: int, seed: int = 0, model: str = "single") -> lvenv.Heart:
     """A stacked batch of n hearts alternating N / HF with randomised physiology, of the LO heart ``model``."""
     rng = np.random.default_rng(seed)
-    pair = (presets.normal(model=model), presets.heart_failure(model=model))
-    tiled = lvenv.stack([pair[i % 2] for i in range(n)])
+    pair = lvenv.stack([presets.normal(model=model), presets.heart_failure(model=model)])
+    tiled = jax.tree.map(lambda x: np.resize(x, n), pair)
+    if pair.elements is not None and np.ndim(pair.elements.element_onsets()) == 2:  # the walls' own onsets: one row per member
+        rows = np.resize(pair.elements.element_onsets(), (n, pair.elements.n_elements))
+        tiled = dataclasses.replace(tiled, elements=dataclasses.replace(pair.elements, onsets=tuple(map(tuple, rows))))
     return tiled.replace(tau2=rng.uniform(0.09, 0.25, n), Sa=rng.uniform(0.8, 1.5, n), R3=rng.uniform(0.12, 0.4, n), C=rng.uniform(6.0, 25.0, n), Cat=rng.uniform(1.5, 10.0, n))
 
 

@@ -154,7 +154,7 @@ def main() -> None:
     table = io.StringIO()
     with contextlib.redirect_stdout(table):
         if a.model != "single":
-            print(f"LO heart model: {a.model} ({builtin(a.patients[0], a.model).heart.elements})\n")
+            print(f"LO heart model: {a.model} ({patients[0].heart.elements})\n")
         print_fits(rows, a.plausibility)
         if a.posterior_samples and a.model != "single":
             print(f"\n(no amortised posterior: the flow is trained on the single-cell heart, not on model {a.model!r})")

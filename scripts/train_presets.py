@@ -38,7 +38,7 @@ def main() -> None:
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=list(HEARTS))
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("lvenv/data"))
     parser.add_argument("--budget", type=int, default=None, help="MADS evaluations per active fit (default 960; with --model 480)")
-    parser.add_argument("--model", choices=[m for m, spec in presets.LO_MODELS.items() if spec is not None],
+    parser.add_argument("--model", choices=presets.MULTI_ELEMENT_MODELS,
                         help="train this multi-element model's maps from the single-cell records")
     args = parser.parse_args()
     if args.model is not None:
@@ -76,7 +76,7 @@ def train_models(args) -> dict:
         t0 = time.perf_counter()
         record = congruency.train_model(data, single, args.model, budget=480 if args.budget is None else args.budget, progress=False)
         seconds = time.perf_counter() - t0
-        record.to_json(args.out / f"trained_{name}_{args.model}.json")
+        record.to_json(args.out / f"trained_{presets.record_name(name, args.model)}.json")
         summary[name] = {"C": record.congruency, "C_single": single.congruency, "onsets_ms": [1000 * x for x in record.elements.onsets],
                          "trained": dataclasses.asdict(record.lo), "training_s": seconds}
         print(f"# {name} {args.model}: C {record.congruency['C']:.4f} (single cell {single.congruency['C']:.4f}; {seconds:.0f} s)", file=sys.stderr, flush=True)

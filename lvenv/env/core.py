@@ -240,9 +240,7 @@ def check_model(patients, scheme: str) -> None:
     if len(models) > 1:
         raise InputError(f"the patients' hearts carry different LO heart models (kind, n_elements, spread: {sorted(map(repr, models))}); "
                          "one env holds one model")
-    (only,) = models
-    if only is not None and scheme == "adaptive":
-        raise InputError(f"scheme = 'adaptive' is not available for a multi-element heart ({patients[0].heart.elements!r}); use scheme='fixed'")
+    lo_model.check_scheme(patients[0].heart.elements, scheme)
 
 
 def env_params(patients) -> EnvParams:

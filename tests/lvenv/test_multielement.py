@@ -104,10 +104,10 @@ def _dense_reference(kind, p, state, ca):
 def _arrow_solve(kind, p, cells, glob, v_el_guess, ca, h):
     """The module's own first ROS2 stage: consistent (V_ξ, P), f, and k = (I − γhJ)⁻¹ f."""
     k = cell.rates(p.cell)
-    v_el, p_lv, _, _ = me._algebraic(kind, p, k, cells, glob[0], v_el_guess, glob[0] * 0.0 + 5.0, 1e-13)
+    v_el, p_lv, _, _ = me._algebraic(p, k, cells, glob[0], v_el_guess, glob[0] * 0.0 + 5.0, 1e-13)
     state = me.State(cells, glob, v_el, p_lv)
     f_cells, f_glob = me._rhs(p, k, ca, *state)
-    lin = me._linearise(kind, p, k, ca, *state, f_cells, f_glob, h)
+    lin = me._linearise(p, k, ca, *state, f_cells, f_glob, h)
     k_cells, k_glob, _ = me._solve(kind, lin, me.GAMMA * h, f_cells, f_glob)
     return state, f_cells, f_glob, k_cells, k_glob
 

@@ -104,3 +104,17 @@ def test_synthetic_recovery_matches_the_observations():
 def test_synthetic_recovery_of_ten_truths_within_one_percent():
     rep = synthetic_recovery(n_sets=10, method="cma", num_envs=16, budget=1600, seed=0)
     assert np.all(rep.max_error < 0.01), rep.max_error
+
+
+def test_make_env_takes_a_patient_record_path_and_picks_the_scheme_of_its_model(tmp_path):
+    """A JSON path (as the env takes it) gets the env's default scheme for the record's LO heart
+    model: adaptive for the single cell, fixed for the 3-cell series heart."""
+    from lvenv.patients import builtin
+    from optim.fit import make_env
+
+    for model, scheme in (("single", "adaptive"), ("series3", "fixed")):
+        path = tmp_path / f"{model}.json"
+        builtin("heart_failure", model).to_json(path)
+        venv = make_env(str(path), num_envs=2)
+        assert venv.unwrapped.config.scheme == scheme and venv.unwrapped.patients[0].heart.elements == builtin("heart_failure", model).heart.elements
+        venv.close()
