@@ -145,7 +145,7 @@ class ElementParams(model.ModelParams):
 
     @property
     def n_elements(self) -> int:
-        """Number of elements (static: the leading axis of the per-element arrays)."""
+        """The leading axis of the per-element arrays, n (static)."""
         return np.shape(self.mu1)[0]
 
 
