@@ -558,9 +558,13 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 @click.option("--scheduler", default=None, metavar="ADDRESS", help="Dask scheduler address (e.g. tcp://host:8786) to split the cohort over")
 @click.option("--maps", type=click.Choice(("regression", "base")), default="regression", show_default=True,
               help="LO maps of a row with geometry columns: its anatomy's, from the anatomy regression, or the base heart's")
+@click.option("--model", type=click.Choice(tuple(LO_MODELS)), default="single", show_default=True,
+              help="the base heart's LO heart model (lvenv.presets.LO_MODELS); a multi-element one takes no geometry columns, "
+                   "and its rows' posteriors need --refine (MCMC)")
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
-def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, maps, posterior, n_samples, refine, as_json) -> int:
+def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, maps, model, posterior, n_samples, refine,
+                   as_json) -> int:
     """Fit every echo report of the CSV REPORTS (columns: id, EF_pct, ET_ms, IVRT_ms, SBP_mmHg,
     DBP_mmHg, HR_bpm; see optim.cohort) together, writing one row per patient to --out. A row
     with geometry columns (Rb_mm ... C0_deg, unloaded) is fitted with its anatomy's LO maps
@@ -570,7 +574,7 @@ def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, 
     from optim.cohort import CohortOptions, PosteriorOptions, run_cohort
 
     n_samples, importance = _check_posterior_options(posterior, n_samples, refine)
-    given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed, "maps": maps}
+    given = {"budget": budget, "candidates": candidates, "slots": slots, "stop_mismatch": stop_mismatch, "seed": seed, "maps": maps, "model": model}
     options = CohortOptions(**{k: v for k, v in given.items() if v is not None})
     posterior_options = None if posterior is None else PosteriorOptions(n_samples, refine, options.seed, {"plausibility": options.plausibility}, importance)
 

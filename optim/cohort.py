@@ -21,7 +21,10 @@ ch. 24; Pauca AL et al., Hypertension 38:932, 2001). So the cuff values set two 
 and the central systolic pressure is left free (reported as ``fit_SBP_central_mmHg``).
 :func:`cuff_from_central` is the inverse used by ``scripts/make_cohort.py``.
 
-The heart: the base heart (``presets.normal()``, the trained LO maps) at the row's heart rate,
+The heart: the base heart (``presets.normal(model=CohortOptions.model)``, the trained LO maps of
+the single cell by default, or of a multi-element LO heart, :data:`lvenv.presets.LO_MODELS`,
+which runs the fixed scheme and takes no row geometry; the amortised posterior flags its rows as
+not covered, and ``refine`` samples them by MCMC) at the row's heart rate,
 which is a per-member parameter of the LO heart (the beat period is 60 / HR), and with the row's
 geometry where given (the unloaded shape, as :class:`lvenv.geometry.Geometry` has it). A row
 with a geometry gets the LO maps of its own anatomy from the anatomy regression
@@ -99,9 +102,10 @@ import numpy as np
 
 from lvenv import archive, presets
 from lvenv.anatomy import ExtrapolationWarning, Regression, load_regression, predicted_maps
-from lvenv.env.core import ENV_SCHEME
+from lvenv.env.core import default_scheme
 from lvenv.env.vector import info_metrics
 from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
+from lvenv.lo_model import check_scheme
 from lvenv.metrics import FRAME_NAMES, METRICS, OBS_NAMES, Metric
 from lvenv.params import Heart, ranges
 from lvenv.patients import Patient
@@ -278,7 +282,7 @@ def _patient(row: Mapping[str, str], base: Heart, regression: Regression | None 
     if any(g is not None for g in geometry.values()):
         if base.elements is not None:
             raise InputError(f"{', '.join(c for c, f in GEOMETRY_COLUMNS.items() if geometry[f] is not None)}: the base heart is a multi-element "
-                             "heart, whose cells' onsets and maps belong to its own wall; a row with its own geometry needs the single-cell base heart")
+                             "heart, whose cells' onsets and maps belong to its own wall; a row with its own geometry needs the single-cell base heart (model 'single')")
         try:
             shape = dataclasses.replace(base.geometry, **{k: g for k, g in geometry.items() if g is not None})
         except InputError as err:
@@ -407,13 +411,14 @@ class CohortOptions:
     stop_mismatch: float = 0.01  # a patient's search stops below this mismatch (fraction)
     sigma0: float = 0.25  # CMA-ES initial step, unit-cube units
     steps_per_beat: int = 500  # of the fixed scheme only
-    scheme: str = ENV_SCHEME  # the env's integration scheme (lvenv.simulation.SCHEMES)
+    scheme: str | None = None  # the env's integration scheme (lvenv.simulation.SCHEMES); None: the model's (lvenv.env.core.default_scheme)
     max_beats: int = 12  # beats per member and env step
     confirm_steps: int = 10  # env steps to confirm the best point's steady state, at most
     rtol: float = 1e-4  # steady-state criterion (lvenv.simulate)
     plausibility: bool = True  # the filling-pressure bands in the objective (lvenv.plausibility)
     maps: str = "regression"  # a row with a geometry: its anatomy's maps ("regression") or the base heart's ("base")
     seed: int = 0
+    model: str = "single"  # the base heart's LO heart model (lvenv.presets.LO_MODELS)
 
     def __post_init__(self) -> None:
         integer("candidates", self.candidates, 2)
@@ -422,7 +427,12 @@ class CohortOptions:
         real("stop_mismatch", self.stop_mismatch, 0.0, 1.0)
         real("sigma0", self.sigma0, 0.0, 1.0, lo_open=True)
         integer("steps_per_beat", self.steps_per_beat, 10)
+        choice("model", self.model, tuple(presets.LO_MODELS))
+        base = self.base_heart()
+        if self.scheme is None:
+            object.__setattr__(self, "scheme", default_scheme(base))
         choice("scheme", self.scheme, SCHEMES)
+        check_scheme(base.elements, self.scheme)
         integer("max_beats", self.max_beats, 1)
         integer("confirm_steps", self.confirm_steps, 1)
         real("rtol", self.rtol, 0.0, 1.0, lo_open=True)
@@ -431,8 +441,17 @@ class CohortOptions:
         choice("maps", self.maps, MAPS)
         integer("seed", self.seed, 0)
 
+    def base_heart(self) -> Heart:
+        """The base heart: the N preset of the LO heart :attr:`model`."""
+        return presets.normal(model=self.model)
+
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The options as the output's record holds them; ``model`` only if not the single cell,
+        so that outputs written before the field existed still resume."""
+        out = dataclasses.asdict(self)
+        if self.model == "single":
+            del out["model"]
+        return out
 
 
 def patient_seed(seed: int, rid: str) -> int:
@@ -760,7 +779,7 @@ def run_cohort(
     workers = integer("workers", workers, 1)
     start = time.perf_counter()
     reports_path, out = Path(reports_path), Path(out_path)
-    parsed = read_reports(reports_path, maps=options.maps)
+    parsed = read_reports(reports_path, options.base_heart(), maps=options.maps)
     if on_bad is not None:
         for bad in parsed.bad:
             on_bad(bad)

@@ -29,11 +29,11 @@ import gymnasium
 import numpy as np
 
 import lvenv
-from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME, default_scheme
+from lvenv.env.core import ENV_ACCELERATION, ENV_SCHEME
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.metrics import METRICS
 from lvenv.params import Heart
-from lvenv.patients import Patient, builtin, resolve
+from lvenv.patients import Patient, builtin
 from lvenv.plausibility import Band, inside_bands
 from optim.minimize import MinimizeResult, minimize
 
@@ -72,9 +72,6 @@ def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, ste
     env's default for the patient's LO heart model, :func:`lvenv.env.core.default_scheme`);
     ``steps_per_beat`` applies to ``scheme="fixed"`` only. ``plausibility``: the objective's
     physiological bands (:mod:`lvenv.plausibility`; default on)."""
-    if scheme is None:
-        first = patient[0] if isinstance(patient, (list, tuple)) and patient else patient
-        scheme = default_scheme(resolve(first, 1)[0].heart)  # a name, path, record or Patient, as the env reads it
     return gymnasium.make_vec(
         "lvenv/LVHeart-v0", num_envs=num_envs, patient=patient, max_episode_steps=None, tolerance=0.0,
         autoreset_mode="Disabled", steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme,

@@ -103,8 +103,10 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         obs_noise: relative standard deviation of Gaussian measurement noise (scalar or per
             observation, ≥ 0); drawn from the env's own key.
         steps_per_beat, max_beats, rtol, scheme, step_tol, acceleration: LO-heart integration
-            (:func:`lvenv.simulate`); the env uses the adaptive scheme and Anderson acceleration
-            by default (``steps_per_beat`` then only matters for ``render``).
+            (:func:`lvenv.simulate`); the env uses Anderson acceleration and, with ``scheme``
+            None (default), the patients' LO heart model's scheme
+            (:func:`~lvenv.env.core.default_scheme`: adaptive for the single cell, where
+            ``steps_per_beat`` then only matters for ``render``; fixed for a multi-element heart).
         autoreset_mode: ``NEXT_STEP`` (default) or ``DISABLED`` (every step evaluates every
             member's action; what optimisers use).
         plausibility: the reward's physiological bands (:mod:`lvenv.plausibility`): ``True``
@@ -132,7 +134,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         steps_per_beat: int = 1000,
         max_beats: int = 60,
         rtol: float = 1e-4,
-        scheme: str = core.ENV_SCHEME,
+        scheme: str | None = None,
         step_tol: float = DEFAULT_STEP_TOL,
         acceleration: str = core.ENV_ACCELERATION,
         render_mode: str | None = None,
@@ -147,6 +149,8 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         except ValueError:
             autoreset_mode = None
         choice("autoreset_mode", autoreset_mode, (AutoresetMode.NEXT_STEP, AutoresetMode.DISABLED))
+        patients = resolve(patient, num_envs)
+        scheme = core.default_scheme(patients[0].heart) if scheme is None else scheme
         settings = check_settings(steps_per_beat=steps_per_beat, max_beats=max_beats, rtol=rtol, scheme=scheme, step_tol=step_tol, acceleration=acceleration)
         del settings["beats"]  # the rest are Config fields
         if max_episode_steps is not None:
@@ -158,7 +162,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.metadata = {**self.metadata, "autoreset_mode": autoreset_mode}
         self.num_envs = num_envs
         self.render_mode = render_mode
-        self.patients = resolve(patient, num_envs)
+        self.patients = patients
         core.check_model(self.patients, settings["scheme"])
         if volume_trace is None:
             volume_trace = any(_traced(p) for p in self.patients)

@@ -45,6 +45,7 @@ def test_help_of_every_command_works(argv, capsys):
         (["fit", "p.json", "--model", "series3"], "--model series3: a patient record carries its own LO heart model"),
         (["fit", "normal", "--model", "series3", "--scheme", "adaptive"], "scheme = 'adaptive' is not available for a multi-element heart"),
         (["simulate", "--model", "series2"], "'series2' is not one of 'single', 'series3'"),
+        (["cohort", "r.csv", "--out", "o.csv", "--model", "series2"], "'series2' is not one of 'single', 'series3'"),
     ],
 )
 def test_usage_errors_exit_2_and_name_the_problem(argv, message, capsys):

@@ -114,8 +114,10 @@ def test_the_env_steps_a_multi_element_patient_and_flags_a_bad_action_alone():
     patient = builtin("normal", "series3")
     assert patient.heart.elements == SERIES3.elements and default_scheme(patient.heart) == "fixed"
     with pytest.raises(InputError, match="scheme = 'adaptive' is not available"):
-        gymnasium.make_vec("lvenv/LVHeart-v0", num_envs=2, patient=patient)
-    venv = gymnasium.make_vec("lvenv/LVHeart-v0", num_envs=3, patient=patient, scheme="fixed", steps_per_beat=STEPS, autoreset_mode="Disabled")
+        gymnasium.make_vec("lvenv/LVHeart-v0", num_envs=2, patient=patient, scheme="adaptive")
+    venv = gymnasium.make_vec("lvenv/LVHeart-v0", num_envs=3, patient=patient, steps_per_beat=STEPS, autoreset_mode="Disabled")
+    assert venv.unwrapped.config.scheme == "fixed", "the env's default scheme follows the patients' model"
+    assert gymnasium.make_vec("lvenv/LVHeart-v0", num_envs=1, patient="normal").unwrapped.config.scheme == "adaptive"
     _, info = venv.reset(seed=0)
     assert list(info["status"]) == ["ok"] * 3
     start = np.stack([info["parameters"][n] for n in venv.unwrapped.action_names], 1)

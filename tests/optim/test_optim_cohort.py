@@ -10,6 +10,7 @@ import pytest
 
 import lvenv
 from lvenv.metrics import OBS_NAMES
+from lvenv.validation import InputError
 from lvenv.units import mmhg_to_kpa
 from optim import cohort
 from optim.cohort import CohortError, CohortOptions, cuff_from_central, cuff_targets, fit_reports, read_reports, run_cohort
@@ -198,17 +199,29 @@ def test_a_dask_local_cluster_gives_the_same_fits_as_one_process(reports_csv, tm
 
 
 def test_a_multi_element_base_heart_fits_rows_of_its_own_wall_and_refuses_other_geometries(tmp_path):
-    """A cohort on the 3-cell series heart (the fixed scheme): a row without geometry fits that
-    heart and its reported fit is its steady state; a row with its own geometry is a bad row
-    naming the columns (the cells' onsets belong to the base heart's wall)."""
-    from lvenv import presets
-
-    base = presets.normal(model="series3")
+    """A cohort on the 3-cell series heart (``model``; the fixed scheme): a row without geometry
+    fits that heart and its reported fit is its steady state; a row with its own geometry is a
+    bad row naming the columns (the cells' onsets belong to the base heart's wall)."""
+    options = dataclasses.replace(SMALL, budget=8, scheme=None, model="series3")
+    base = options.base_heart()
+    assert base.elements is not None and options.scheme == "fixed"
     path = _write(tmp_path / "r.csv", [[*GOOD, ""], ["B", *GOOD[1:], "40"]], [*HEADER, "Rb_mm"])
     parsed = read_reports(path, base=base)
     (row,) = parsed.rows
     assert row.patient.heart.elements == base.elements
     assert [b.line for b in parsed.bad] == [3] and "Rb_mm: the base heart is a multi-element heart" in parsed.bad[0].reason
-    options = dataclasses.replace(SMALL, budget=8, scheme="fixed")
     (result,) = fit_reports([row], options)
     _check_reported_fit_against_an_independent_simulation(result, row.patient, options)
+
+
+def test_the_model_option_keeps_old_outputs_resumable_and_refuses_the_adaptive_scheme_for_cells_in_series():
+    """The single cell's options record has no ``model`` entry (outputs written before the option
+    resume); a multi-element model is recorded and takes the fixed scheme, and the adaptive
+    scheme is refused for it."""
+    assert "model" not in CohortOptions().to_dict() and CohortOptions().scheme == "adaptive"
+    series = CohortOptions(model="series3")
+    assert series.to_dict()["model"] == "series3" and series.scheme == "fixed"
+    with pytest.raises(InputError, match="model = 'series2' is not one of"):
+        CohortOptions(model="series2")
+    with pytest.raises(InputError, match="scheme = 'adaptive' is not available for a multi-element heart"):
+        CohortOptions(model="series3", scheme="adaptive")
