@@ -207,18 +207,21 @@ def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:
 # ---------------------------------------------------------------------------- active
 def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16,
                seed: int = 0, steps_per_beat: int = 1000, progress: bool | None = None,
-               arrangement: Arrangement | None = None) -> tuple[LOParams, np.ndarray]:
-    """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay}) by OrthoMADS with kriging search, from
+               arrangement: Arrangement | None = None, bounds: Mapping[str, tuple[float, float]] | None = None) -> tuple[LOParams, np.ndarray]:
+    """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay}, and those ``bounds`` boxes) by OrthoMADS with kriging search, from
     ``start`` (clipped into :data:`ACTIVE_BOUNDS`); returns the best LO parameters and C per
     training beat. ``arrangement``: train a multi-element LO heart (:func:`lo_beats`).
+    ``bounds``: search boxes of further LO parameters, or other boxes for these (same units as
+    :class:`~lvenv.params.LOParams`).
 
     C² can have several local minima (seen against the series multi-element model). When a MADS
     run converges (poll size below its minimum) before the budget is spent, MADS restarts from a
     uniformly drawn point of the box with the budget left, and the best point over all runs wins.
     """
     names = tuple(names)
-    lower = np.array([ACTIVE_BOUNDS[n][0] for n in names])
-    upper = np.array([ACTIVE_BOUNDS[n][1] for n in names])
+    box = {**ACTIVE_BOUNDS, **(bounds or {})}
+    lower = np.array([box[n][0] for n in names])
+    upper = np.array([box[n][1] for n in names])
     x0 = np.clip([getattr(start, n) for n in names], lower, upper)
 
     def candidates(x: np.ndarray) -> list[LOParams]:

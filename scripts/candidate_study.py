@@ -16,7 +16,16 @@ The candidates (`CANDIDATES`):
   cells cost less per beat (`scripts/bench_candidates.py`), which the issue's cost goal (≤ 4×
   the single cell) needs; the model shipped as `lvenv.presets.LO_MODELS["series3"]`;
 * **series2-onsets**, **series4-onsets**: 2 and 4 cells in series (quantiles evenly spaced over
-  5–95 %), to see how C depends on the number of cells.
+  5–95 %), to see how C depends on the number of cells;
+* **single-relax**, **series3-relax** (dataset mode only): the single cell, or series3-onsets,
+  with a relaxation term: the LO cells' calcium transient decays with τ2 × r instead of the
+  wall's τ2 (one more trained parameter, r; the delay shifts the whole transient, decay
+  included, so a delay that matches the upstroke may relax the LO heart too late). r is chosen
+  on `RELAX_GRID`, {μ1, μ2, γ, delay} refitted at each r;
+* **single-filling**, **series3-filling**: with a filling term: the passive map's linear
+  stiffness c (kPa), trained on the quasi-static inflation alone, refitted on the beats beside
+  {μ1, μ2, γ, delay} (within [1.05 b²/(3a), 4c], where Ppass stays monotone): whether the
+  error of relaxation and early filling is the passive map's.
 
 The anatomy sets the onsets (`optim.congruency.wall_arrangement`, at the quantiles of
 `lvenv.presets.onset_quantiles`; `fe_oracle.activation.activation_quantiles` on its oracle mesh:
@@ -26,7 +35,8 @@ budget ``--budget``); the passive maps stay.
 
 ``dataset``: each anatomy of the campaign's dataset (`optim.campaign.oracle_data`: its FE
 training beats, no FE run; default: the 5 held-out anatomies and the first 5 training ones), C
-on its training beats; writes ``--out``/candidates_dataset.md.
+on its training beats and its C² per window of the beat (`optim.diagnosis`); writes
+``--out``/candidates_dataset.md.
 
 ``hearts``: the built-in trained hearts (N, HF), trained on their own FE training beats
 (`optim.congruency.oracle_data`, h = 6 mm, the oracle's time step ``--dt``; FE runs cached) and
@@ -57,14 +67,21 @@ from lvenv import presets  # noqa: E402
 from lvenv.params import Arrangement, LOParams  # noqa: E402
 from lvenv.plots import generalisation_figure  # noqa: E402
 from lvenv.trained import builtin  # noqa: E402
-from optim import campaign, congruency  # noqa: E402
+from optim import campaign, congruency, diagnosis  # noqa: E402
 from optim.studies import UNSEEN, generalisation  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 #: The multi-element candidates: name → (arrangement kind, cells).
 ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), "series3-onsets": ("series", 3),
             "series2-onsets": ("series", 2), "series4-onsets": ("series", 4)}
-CANDIDATES = ("single", *ARRANGED)
+#: Candidates with one more trained term: name → (the candidate they extend, "relax" or "filling").
+EXTENDED = {"single-relax": ("single", "relax"), "series3-relax": ("series3-onsets", "relax"),
+            "single-filling": ("single", "filling"), "series3-filling": ("series3-onsets", "filling")}
+#: The relaxation-term candidates (dataset mode only: the LO cell's τ2 is not an LO parameter).
+RELAXED = tuple(name for name, (_, term) in EXTENDED.items() if term == "relax")
+#: The decay factors r a relaxation-term candidate is trained over (the LO cell's τ2 is the wall's × r).
+RELAX_GRID = (0.85, 0.9, 0.95, 1.0, 1.05)
+CANDIDATES = ("single", *ARRANGED, *EXTENDED)
 #: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
 GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
 TRAINED = (*congruency.ACTIVE_NAMES, "delay")
@@ -78,24 +95,45 @@ def arrangement(name: str, data: congruency.OracleData, lo: LOParams) -> Arrange
     return congruency.wall_arrangement(kind, cells, (1.0, 1.0) if kind == "series" else (lo.mu1, lo.mu1), data)
 
 
+def relaxed(data: congruency.OracleData, r: float) -> congruency.OracleData:
+    """``data`` with the LO cells' calcium decay time constant τ2 × ``r`` (the FE beats unchanged)."""
+    return dataclasses.replace(data, cell=dataclasses.replace(data.cell, tau2=data.cell.tau2 * r))
+
+
 def train(data: congruency.OracleData, trained: LOParams, names, budget: int) -> dict:
     """Each candidate of ``names`` on ``data`` (its wall's onsets, :func:`arrangement`), from the
-    single cell's ``trained`` maps: name → (maps, C per training beat, arrangement, seconds)."""
+    single cell's ``trained`` maps: name → (maps, C per training beat, arrangement, seconds,
+    decay factor r: 1 but for :data:`RELAXED`, the best of :data:`RELAX_GRID`)."""
     out = {}
     for name in names:
         t0 = time.perf_counter()
-        arr = arrangement(name, data, trained)
-        if arr is None:
+        base, term = EXTENDED.get(name, (name, None))
+        arr = arrangement(base, data, trained)
+        r = 1.0
+        if term == "relax":
+            fits = {r: congruency.fit_active(relaxed(data, r), trained, TRAINED, budget=budget, arrangement=arr) for r in RELAX_GRID}
+            r = min(fits, key=lambda k: congruency.overall(fits[k][1]))
+            lo, c = fits[r]
+        elif term == "filling":
+            box = {"c": (1.05 * trained.b**2 / (3.0 * trained.a), 4.0 * trained.c)}
+            lo, c = congruency.fit_active(data, trained, (*TRAINED, "c"), budget=budget, arrangement=arr, bounds=box)
+        elif arr is None:
             lo, c = trained, congruency.run_congruency(data, [trained])[0]
         else:
             lo, c = congruency.fit_active(data, trained, TRAINED, budget=budget, arrangement=arr)
-        out[name] = (lo, c, arr, time.perf_counter() - t0)
-        print(f"{data.geometry} {name}: C {100 * congruency.overall(c):.2f} %", file=sys.stderr, flush=True)
+        out[name] = (lo, c, arr, time.perf_counter() - t0, r)
+        print(f"{data.geometry} {name}: C {100 * congruency.overall(c):.2f} % (r {r:g})", file=sys.stderr, flush=True)
     return out
 
 
-def _summary(lo: LOParams, c: np.ndarray, seconds: float) -> dict:
-    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, **{k: getattr(lo, k) for k in TRAINED}}
+def window_c2(data: congruency.OracleData, lo: LOParams, arr: Arrangement | None) -> dict:
+    """C² of each window of the beat (:data:`optim.diagnosis.WINDOWS`) of the LO heart ``lo`` on ``data``."""
+    split = diagnosis.diagnose(data, lo, arrangement=arr)
+    return {w: split["C"] ** 2 * share for w, share in split["share"].items()}
+
+
+def _summary(lo: LOParams, c: np.ndarray, seconds: float, r: float) -> dict:
+    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, "relax": r, **{k: getattr(lo, k) for k in (*TRAINED, "c")}}
 
 
 def dataset_mode(args, command: str) -> dict:
@@ -113,16 +151,23 @@ def dataset_mode(args, command: str) -> dict:
         trained = LOParams(**{f.name: row[f.name] for f in dataclasses.fields(LOParams)})
         fits = train(data, trained, args.candidates, args.budget)
         results.append({"id": row["id"], "onsets_ms": [1000 * x for x in congruency.wall_arrangement("series", 5, (1.0, 1.0), data).onsets],
-                        **{name: _summary(lo, c, s) for name, (lo, c, _, s) in fits.items()}})
+                        **{name: {**_summary(lo, c, s, r), "window_C2": window_c2(relaxed(data, r), lo, arr)}
+                           for name, (lo, c, arr, s, r) in fits.items()}})
     medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
+    windows = {name: {w: float(np.median([r[name]["window_C2"][w] for r in results])) for w in diagnosis.WINDOWS} for name in args.candidates}
     lines = [f"Made by `{command}`: each candidate trained on each anatomy's own FE training beats (campaign dataset, "
              "h = 6 mm, dt = 5 ms; no FE run). C on the training beats, in %.", "",
              "Median over the anatomies: " + ", ".join(f"{n} {100 * m:.2f} %" for n, m in medians.items()) + ".", "",
              "| anatomy | 5 cells' onsets (ms) | " + " | ".join(args.candidates) + " |", "|---|---|" + "---|" * len(args.candidates)]
-    lines += [f"| {r['id']} | {', '.join(f'{x:+.0f}' for x in r['onsets_ms'])} | " + " | ".join(f"{100 * r[n]['C']:.2f}" for n in args.candidates) + " |"
+    cell = lambda fit: f"{100 * fit['C']:.2f}" + (f" (r {fit['relax']:g})" if fit["relax"] != 1.0 else "")
+    lines += [f"| {r['id']} | {', '.join(f'{x:+.0f}' for x in r['onsets_ms'])} | " + " | ".join(cell(r[n]) for n in args.candidates) + " |"
               for r in results]
+    lines += ["", "Where the error sits: C² of each window of the beat (`optim.diagnosis`; valve events of the FE beat), median over the "
+              "anatomies, × 10⁻⁴ (the medians of the windows need not add up to the median C²).", "",
+              "| candidate | " + " | ".join(diagnosis.WINDOWS) + " |", "|---|" + "---|" * len(diagnosis.WINDOWS)]
+    lines += [f"| {n} | " + " | ".join(f"{1e4 * windows[n][w]:.1f}" for w in diagnosis.WINDOWS) + " |" for n in args.candidates]
     (args.out / "candidates_dataset.md").write_text("\n".join(lines) + "\n")
-    return {"median_C": medians, "anatomies": results}
+    return {"median_C": medians, "median_window_C2": windows, "anatomies": results}
 
 
 def hearts_mode(args, command: str) -> dict:
@@ -136,9 +181,9 @@ def hearts_mode(args, command: str) -> dict:
         fits = train(data, builtin(heart_name).lo, args.candidates, args.budget)
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
-        for name, (lo, c, arr, seconds) in fits.items():
+        for name, (lo, c, arr, seconds, r) in fits.items():
             rows = generalisation(dataclasses.replace(heart, lo=lo, elements=arr), scenarios, progress=False, **oracle) if scenarios else []
-            entry["candidates"][name] = {"training": _summary(lo, c, seconds),
+            entry["candidates"][name] = {"training": _summary(lo, c, seconds, r),
                                          "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
             traces[name] = rows
         results.append(entry)
@@ -173,12 +218,18 @@ def main() -> None:
     parser.add_argument("mode", choices=("dataset", "hearts"))
     parser.add_argument("--anatomies", nargs="+", help="dataset mode: dataset ids (default: the held-out anatomies and the first 5 training ones)")
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS), help="hearts mode: the built-in hearts")
-    parser.add_argument("--candidates", nargs="+", choices=CANDIDATES, default=list(CANDIDATES))
+    parser.add_argument("--candidates", nargs="+", choices=CANDIDATES,
+                        help="default: every candidate (hearts mode: but the relaxation-term ones)")
     parser.add_argument("--dt", type=float, help="hearts mode: the oracle's time step (s; default the oracle's own, 5 ms)")
     parser.add_argument("--no-unseen", action="store_true", help="hearts mode: the training beats only")
     parser.add_argument("--budget", type=int, default=480, help="MADS evaluations per active fit")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/diagnosis"))
     args = parser.parse_args()
+    if args.candidates is None:
+        args.candidates = [n for n in CANDIDATES if args.mode == "dataset" or n not in RELAXED]
+    if args.mode == "hearts" and set(args.candidates) & set(RELAXED):
+        parser.error(f"--candidates {sorted(set(args.candidates) & set(RELAXED))}: the relaxation-term candidates run in the dataset mode only "
+                     "(the unseen scenarios would run their LO cell with the wall's τ2)")
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python scripts/candidate_study.py " + " ".join(sys.argv[1:])
     result = dataset_mode(args, command) if args.mode == "dataset" else hearts_mode(args, command)
