@@ -83,6 +83,23 @@ def test_fidelity_of_the_lo_heart_against_itself_is_within_every_tolerance(tmp_p
     assert not other.ok and other.C > 2 * report.C, (other.C, report.C)
 
 
+def test_fit_active_searches_a_further_lo_parameter_inside_the_box_it_is_given():
+    """``bounds`` adds a parameter to the search: against beats the single cell generated with a
+    20 % stiffer passive map, fitting {μ2, c} from the trained c recovers that c; a box that
+    excludes it keeps c at the box's edge."""
+    import fe_oracle
+
+    truth = dataclasses.replace(presets.N_LO, c=1.2 * presets.N_LO.c)
+    sim = lvenv.simulate(cg.training_hearts(presets.N_UNLOADED, presets.normal().cell, [truth]), beats=1, steps_per_beat=500)
+    beats = {k: fe_oracle.OracleResult({name: np.asarray(getattr(sim.traces, name))[j] for name in ("t", "V", "P_lv")}, {}, [])
+             for j, k in enumerate(cg.CONDITIONS)}
+    data = cg.OracleData(presets.N_UNLOADED, presets.normal().cell, None, beats, "lo", {})
+    lo, c = cg.fit_active(data, presets.N_LO, ("mu2", "c"), budget=96, steps_per_beat=500, bounds={"c": (0.5 * truth.c, 1.5 * truth.c)})
+    assert lo.c == pytest.approx(truth.c, rel=1e-3) and np.all(c < 1e-3)
+    capped, _ = cg.fit_active(data, presets.N_LO, ("mu2", "c"), budget=32, steps_per_beat=500, bounds={"c": (0.5 * truth.c, 0.9 * truth.c)})
+    assert capped.c == pytest.approx(0.9 * truth.c, rel=1e-3)
+
+
 def test_a_multi_element_candidate_is_trained_against_beats_it_generated():
     """fit_active with an arrangement trains that arrangement: against beats of 3 cells in series
     with spread onsets (known maps), it recovers μ2 and the delay from a 10 % start with C ≈ 0,
