@@ -181,9 +181,9 @@ def hearts_mode(args, command: str) -> dict:
         fits = train(data, builtin(heart_name).lo, args.candidates, args.budget)
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
-        for name, (lo, c, arr, seconds, r) in fits.items():
+        for name, (lo, c, arr, seconds, factor) in fits.items():
             rows = generalisation(dataclasses.replace(heart, lo=lo, elements=arr), scenarios, progress=False, **oracle) if scenarios else []
-            entry["candidates"][name] = {"training": _summary(lo, c, seconds, r),
+            entry["candidates"][name] = {"training": _summary(lo, c, seconds, factor),
                                          "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
             traces[name] = rows
         results.append(entry)
