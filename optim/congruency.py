@@ -208,11 +208,12 @@ def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:
 def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16,
                seed: int = 0, steps_per_beat: int = 1000, progress: bool | None = None,
                arrangement: Arrangement | None = None, bounds: Mapping[str, tuple[float, float]] | None = None) -> tuple[LOParams, np.ndarray]:
-    """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay}, and those ``bounds`` boxes) by OrthoMADS with kriging search, from
-    ``start`` (clipped into :data:`ACTIVE_BOUNDS`); returns the best LO parameters and C per
-    training beat. ``arrangement``: train a multi-element LO heart (:func:`lo_beats`).
-    ``bounds``: search boxes of further LO parameters, or other boxes for these (same units as
-    :class:`~lvenv.params.LOParams`).
+    """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay} and the parameters ``bounds`` boxes) by
+    OrthoMADS with kriging search, from ``start`` (clipped into the boxes); returns the best LO
+    parameters and C per training beat. ``arrangement``: train a multi-element LO heart
+    (:func:`lo_beats`). ``bounds``: search boxes of further LO parameters, or other boxes for
+    these, name → (lower, upper) in the units of :class:`~lvenv.params.LOParams`
+    (default :data:`ACTIVE_BOUNDS`).
 
     C² can have several local minima (seen against the series multi-element model). When a MADS
     run converges (poll size below its minimum) before the budget is spent, MADS restarts from a
