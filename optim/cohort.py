@@ -427,8 +427,7 @@ class CohortOptions:
         real("stop_mismatch", self.stop_mismatch, 0.0, 1.0)
         real("sigma0", self.sigma0, 0.0, 1.0, lo_open=True)
         integer("steps_per_beat", self.steps_per_beat, 10)
-        choice("model", self.model, tuple(presets.LO_MODELS))
-        base = self.base_heart()
+        base = self.base_heart()  # refuses a model not in presets.LO_MODELS, naming it
         if self.scheme is None:
             object.__setattr__(self, "scheme", default_scheme(base))
         choice("scheme", self.scheme, SCHEMES)
