@@ -36,6 +36,11 @@ step, code versions). `optim.regression` fits and writes it; nothing here unpick
 predictive sd of every parameter in ``provenance["sd"]``; a geometry outside the sampled box
 gets an :class:`ExtrapolationWarning` naming the parameter.
 
+A multi-element LO heart (:data:`lvenv.presets.LO_MODELS`, e.g. ``"series3"``) has a regression
+of its own (:func:`artefact`; `optim.regression.fit` with ``model=``, over the model's table of
+the dataset): the same outputs and its cells' onsets (:func:`onset_outputs`), so that
+``from_geometry(geometry, model="series3")`` gives a record with its cells (``elements``).
+
 Imaged ventricles are loaded; the regression takes the unloaded shape. :func:`unload` applies
 the paper's rule, an assumed mid-wall end-diastolic strain (:data:`ED_STRAIN`).
 """
@@ -55,14 +60,16 @@ from typing import Any
 import numpy as np
 from scipy.optimize import brentq
 
+from lvenv import presets
 from lvenv.geometry import Geometry, GeometryError, cavity_volume, wall_volume
-from lvenv.params import CellParams, LOParams
+from lvenv.params import Arrangement, CellParams, LOParams
 from lvenv.trained import DATA, TrainedLO
 from lvenv.validation import InputError, integer, real
 
-__all__ = ["ARTEFACT", "ARTEFACT_ENV", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "log_normal", "load_regression", "from_geometry", "predicted_maps", "map_draws", "unload", "inflate", "unload_to_volume"]
+__all__ = ["ARTEFACT", "ARTEFACT_ENV", "artefact", "onset_outputs", "FORMAT_VERSION", "INPUTS", "LO_OUTPUTS", "ED_STRAIN", "STRAIN_RANGE", "ExtrapolationWarning", "Regression", "kernel", "log_normal", "load_regression", "from_geometry", "maps_note", "predicted_maps", "map_draws", "unload", "inflate", "unload_to_volume"]
 
 ARTEFACT = DATA / "anatomy" / "regression.json"
+
 FORMAT_VERSION = 2
 #: The GP inputs: the `Geometry` fields, in order.
 INPUTS = tuple(f.name for f in dataclasses.fields(Geometry))
@@ -73,6 +80,21 @@ NU = 2.5
 #: Smallest length scale of a standardised input, and smallest white-noise variance of a
 #: standardised output (module docstring).
 MIN_LENGTH_SCALE, MIN_NOISE = 0.3, 1e-2
+
+
+def artefact(model: str = "single") -> pathlib.Path:
+    """The shipped regression of LO heart ``model`` (:data:`lvenv.presets.LO_MODELS`):
+    :data:`ARTEFACT` for the single cell, ``regression_<model>.json`` beside it for a
+    multi-element model."""
+    presets.check_model(model)
+    return ARTEFACT if model == "single" else ARTEFACT.with_name(f"regression_{model}.json")
+
+
+def onset_outputs(model: str) -> tuple[str, ...]:
+    """What a regression of ``model`` predicts besides the LO parameters and C: each cell's
+    onset ``onset_<k>`` (s, relative to the LO delay; none for the single cell)."""
+    spec = presets.LO_MODELS[presets.check_model(model)]
+    return () if spec is None else tuple(f"onset_{k}" for k in range(1, spec[1] + 1))
 
 
 def log_normal(mean: np.ndarray, sd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -116,6 +138,20 @@ class Regression:
     provenance: dict[str, Any]
     _gps: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
 
+    @property
+    def model(self) -> str:
+        """The LO heart model whose maps it predicts (``provenance["model"]``; "single" if absent)."""
+        return self.provenance.get("model", "single")
+
+    def arrangement(self, mean: Mapping[str, np.ndarray], member: int = 0) -> Arrangement | None:
+        """The model's cells with the onsets of ``mean`` (:meth:`predict`'s, anatomy ``member``);
+        None for the single cell."""
+        spec = presets.LO_MODELS[self.model]
+        if spec is None:
+            return None
+        kind, cells, spread = spec
+        return Arrangement(kind, cells, spread, onsets=tuple(float(mean[name][member]) for name in onset_outputs(self.model)))
+
     @classmethod
     def from_dict(cls, record: Mapping[str, Any], source: str = "regression record") -> Regression:
         """Validate and build; :class:`~lvenv.validation.InputError` naming the field otherwise."""
@@ -146,6 +182,10 @@ class Regression:
             raise InputError(f"{source} is malformed: y and ids must have one entry per anatomy ({len(x)})")
         if set(reg.box) != set(INPUTS):
             raise InputError(f"{source} is malformed: box must name {list(INPUTS)}, not {sorted(reg.box)}")
+        if reg.model not in presets.LO_MODELS:
+            raise InputError(f"{source} is malformed: provenance.model = {reg.model!r} is not one of {list(presets.LO_MODELS)}")
+        if missing := [n for n in onset_outputs(reg.model) if n not in outputs]:
+            raise InputError(f"{source} is malformed: a regression of model {reg.model!r} predicts its cells' onsets, and {missing} are missing")
         return reg
 
     @classmethod
@@ -155,7 +195,8 @@ class Regression:
             record = json.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise InputError(f"no anatomy regression at {str(path)!r}: it is written by `lvenv campaign regress` once the campaign "
-                             "dataset has accepted anatomies") from None
+                             "dataset has accepted anatomies (for a multi-element model, `lvenv campaign train-model` and then "
+                             "`lvenv campaign regress --model`)") from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
             raise InputError(f"cannot read the anatomy regression {str(path)!r}: {type(err).__name__}: {err}") from None
         return cls.from_dict(record, f"anatomy regression {str(path)!r}")
@@ -215,7 +256,7 @@ class Regression:
                 "x": self.x.tolist(), "y": {k: v.tolist() for k, v in self.y.items()}, "provenance": self.provenance}
 
 
-#: Environment variable naming a regression artefact to use instead of the shipped one.
+#: Environment variable naming a regression artefact to use instead of the shipped one of the single cell.
 ARTEFACT_ENV = "LVENV_ANATOMY_REGRESSION"
 
 
@@ -224,33 +265,42 @@ def _loaded(path: str) -> Regression:
     return Regression.load(path)
 
 
-def load_regression(regression: Regression | str | pathlib.Path | None = None) -> Regression:
-    """``regression`` itself, the artefact at a path, or (None) the one :data:`ARTEFACT_ENV`
-    names if set, else the shipped :data:`ARTEFACT`; loaded once per path."""
-    if isinstance(regression, Regression):
-        return regression
-    if regression is None and os.environ.get(ARTEFACT_ENV):
-        path = pathlib.Path(os.environ[ARTEFACT_ENV])
-        if not path.is_file():
-            raise InputError(f"{ARTEFACT_ENV} = {str(path)!r} is not a file; it must name an anatomy regression artefact (`lvenv campaign regress --out`)")
-        regression = path
-    return _loaded(str(pathlib.Path(ARTEFACT if regression is None else regression).resolve()))
+def load_regression(regression: Regression | str | pathlib.Path | None = None, model: str | None = None) -> Regression:
+    """``regression`` itself, the artefact at a path, or (None) the shipped one of LO heart
+    ``model`` (:func:`artefact`, default the single cell's, or the one :data:`ARTEFACT_ENV`
+    names if set); loaded once per path. A regression of another model than ``model`` (None:
+    any) raises :class:`~lvenv.validation.InputError` naming both."""
+    if model is not None:
+        presets.check_model(model)
+    if not isinstance(regression, Regression):
+        default = "single" if model is None else model
+        if regression is None and default == "single" and os.environ.get(ARTEFACT_ENV):
+            path = pathlib.Path(os.environ[ARTEFACT_ENV])
+            if not path.is_file():
+                raise InputError(f"{ARTEFACT_ENV} = {str(path)!r} is not a file; it must name an anatomy regression artefact (`lvenv campaign regress --out`)")
+            regression = path
+        regression = _loaded(str(pathlib.Path(artefact(default) if regression is None else regression).resolve()))
+    if model is not None and regression.model != model:
+        raise InputError(f"the anatomy regression predicts the maps of model {regression.model!r}, not of model {model!r}")
+    return regression
 
 
-def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Path | None = None, cell: CellParams | None = None) -> TrainedLO:
+def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Path | None = None, cell: CellParams | None = None,
+                  model: str | None = None) -> TrainedLO:
     """The GP-predicted trained LO maps of ``geometry`` (unloaded, mm), no FE run.
 
-    ``regression``: a :class:`Regression`, a path to an artefact, or None for the one the
-    environment variable :data:`ARTEFACT_ENV` names, else the shipped one (:data:`ARTEFACT`).
-    The record's ``congruency["C"]`` is the predicted C of a heart trained
-    on this anatomy; ``provenance["sd"]`` holds the predictive sd of every parameter and of C
+    ``regression``: a :class:`Regression`, a path to an artefact, or None for the shipped one of
+    LO heart ``model`` (:func:`load_regression`; ``model`` None: the single cell's, or any
+    model a given regression predicts). A multi-element model's record carries its cells
+    (``elements``) with the onsets the regression predicts. The record's ``congruency["C"]`` is
+    the predicted C of a heart trained on this anatomy; ``provenance["sd"]`` holds the predictive sd of every parameter and of C
     (same units), ``provenance["outside_box"]`` the parameters outside the sampled box, and
     ``provenance["clipped"]`` any predicted parameter that fell outside its allowed range
     (:class:`~lvenv.params.LOParams`) and was clipped into it, with a warning.
     """
     if not isinstance(geometry, Geometry):
         raise InputError(f"geometry must be an lvenv.geometry.Geometry, got {type(geometry).__name__}")
-    regression = load_regression(regression)
+    regression = load_regression(regression, model)
     missing = [n for n in LO_OUTPUTS if n not in regression.outputs]
     if missing:
         raise InputError(f"the regression does not predict {missing}; it predicts {list(regression.outputs)}")
@@ -272,25 +322,34 @@ def from_geometry(geometry: Geometry, regression: Regression | str | pathlib.Pat
                   "outside_box": outside, "clipped": clipped, "training_anatomies": len(regression.ids),
                   **{k: v for k, v in regression.provenance.items() if k not in ("cv", "cv_predictions")}}
     lo = LOParams(**values)
-    return TrainedLO(geometry, lo, CellParams() if cell is None else cell, {"C": c}, None, math.nan, provenance)
+    return TrainedLO(geometry, lo, CellParams() if cell is None else cell, {"C": c}, None, math.nan, provenance, regression.arrangement(mean))
+
+
+def maps_note(trained: TrainedLO) -> dict[str, Any]:
+    """What a patient record keeps of the GP-predicted maps ``trained`` (:func:`from_geometry`;
+    :attr:`lvenv.patients.Patient.anatomy` ``["maps"]``): the source, the predicted C, every
+    output's predictive sd, the outside-box and clipping notes, and a multi-element model's name."""
+    note = {"source": "regression", "C": trained.congruency["C"], **{k: trained.provenance[k] for k in ("sd", "outside_box", "clipped", "training_anatomies")}}
+    return note if trained.elements is None else {**note, "model": presets.model_of(trained.elements)}
 
 
 def predicted_maps(geometry: Geometry, regression: Regression | str | pathlib.Path | None = None) -> tuple[LOParams, dict[str, Any]]:
     """The regression's LO maps of ``geometry`` (:func:`from_geometry`, warnings and all) and
-    what a patient record keeps of them (:attr:`lvenv.patients.Patient.anatomy` ``["maps"]``):
-    the source, the predicted C, every output's predictive sd and the outside-box and clipping notes."""
+    what a patient record keeps of them (:func:`maps_note`)."""
     trained = from_geometry(geometry, regression)
-    return trained.lo, {"source": "regression", "C": trained.congruency["C"],
-                        **{k: trained.provenance[k] for k in ("sd", "outside_box", "clipped", "training_anatomies")}}
+    return trained.lo, maps_note(trained)
 
 
-def map_draws(geometry: Geometry, n: int, *, seed: int = 0, regression: Regression | str | pathlib.Path | None = None) -> list[LOParams]:
-    """``n`` draws of the LO maps of ``geometry`` from the regression's predictive distribution:
-    each parameter normal with its GP's mean and sd on the GP's scale (log-normal for a log
-    output; one GP per parameter, so independent), clipped to its allowed range. Refitting a patient at each draw carries the maps'
-    uncertainty into the fitted parameters."""
+def map_draws(geometry: Geometry, n: int, *, seed: int = 0, regression: Regression | str | pathlib.Path | None = None,
+              model: str | None = None) -> list[LOParams]:
+    """``n`` draws of the LO maps of ``geometry`` from the regression's predictive distribution
+    (``regression`` and ``model`` as :func:`load_regression` takes them): each parameter normal
+    with its GP's mean and sd on the GP's scale (log-normal for a log output; one GP per
+    parameter, so independent), clipped to its allowed range; a multi-element heart's cells keep
+    their predicted onsets. Refitting a patient at each draw carries the maps' uncertainty into
+    the fitted parameters."""
     n, seed = integer("n", n, 1, 10_000), integer("seed", seed, 0)
-    regression = load_regression(regression)
+    regression = load_regression(regression, model)
     with warnings.catch_warnings():  # from_geometry's own call warns, not each draw
         warnings.simplefilter("ignore", ExtrapolationWarning)
         mean, sd = regression.latent([geometry], LO_OUTPUTS)

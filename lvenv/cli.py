@@ -58,7 +58,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lvenv import interrupt, jitcache, plots, presets
-from lvenv.presets import LO_MODELS
+from lvenv.presets import LO_MODELS, MULTI_ELEMENT_MODELS
 from lvenv.geometry import cavity_volume
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.metrics import SUMMARY_NAMES, display, header
@@ -559,8 +559,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 @click.option("--maps", type=click.Choice(("regression", "base")), default="regression", show_default=True,
               help="LO maps of a row with geometry columns: its anatomy's, from the anatomy regression, or the base heart's")
 @click.option("--model", type=click.Choice(tuple(LO_MODELS)), default="single", show_default=True,
-              help="the base heart's LO heart model (lvenv.presets.LO_MODELS); a multi-element one takes no geometry columns, "
-                   "and its rows' posteriors need --refine (MCMC)")
+              help="the base heart's LO heart model (lvenv.presets.LO_MODELS; rows with geometry columns take its anatomy regression); "
+                   "a multi-element one's rows' posteriors need --refine (MCMC)")
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print the summary as JSON")
 def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, seed, workers, scheduler, maps, model, posterior, n_samples, refine,
@@ -840,21 +840,50 @@ def campaign_status_command(directory, as_json) -> int:
     return EXIT_OK
 
 
+@campaign_group.command("train-model", epilog=_EPILOG)
+@click.argument("directory", type=click.Path(file_okay=False), required=False)
+@click.option("--model", type=click.Choice(MULTI_ELEMENT_MODELS), default=MULTI_ELEMENT_MODELS[0], show_default=True, help="the multi-element LO heart")
+@click.option("--budget", type=click.IntRange(min=16), default=480, show_default=True, help="MADS evaluations per anatomy")
+@click.option("--limit", type=click.IntRange(min=0), default=None, help="stop after this many anatomies")
+def campaign_train_model_command(directory, model, budget, limit) -> int:
+    """Train a multi-element LO heart on every accepted anatomy of the campaign in DIRECTORY
+    [default: the package dataset], from its FE traces (no FE run), into DIRECTORY/models/MODEL.csv,
+    which `lvenv campaign regress --model MODEL` regresses. Finished anatomies are kept; the same
+    command resumes."""
+    from optim import campaign
+
+    directory = campaign.DATASET if directory is None else directory
+    started = time.perf_counter()
+
+    def progress(row: dict, done: int, total: int) -> None:
+        left = (time.perf_counter() - started) / done * (total - done)
+        _err.print(f"{model} {time.strftime('%H:%M:%S')}: {row['id']} C {100 * row['C']:.2f} % ({done}/{total}, about {left / 60:.0f} min left)", markup=False)
+
+    try:
+        rows = campaign.train_model_table(directory, model, budget=budget, limit=limit, progress=progress)
+    except KeyboardInterrupt:
+        _err.print(f"interrupted: every finished anatomy is kept in {campaign.model_table_path(directory, model)}; run the same command to resume", markup=False)
+        raise click.exceptions.Abort() from None
+    _out().print(f"{len(rows)} anatomies trained for {model} in {campaign.model_table_path(directory, model)}")
+    return EXIT_OK
+
+
 @campaign_group.command("regress", epilog=_EPILOG)
 @click.argument("directory", type=click.Path(file_okay=False), required=False)
-@click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="the artefact [default: the package's lvenv/data/anatomy/regression.json]")
+@click.option("--model", type=click.Choice(tuple(LO_MODELS)), default="single", show_default=True,
+              help="the LO heart whose maps to regress (a multi-element one from `lvenv campaign train-model`)")
+@click.option("--out", "out_path", type=click.Path(dir_okay=False), default=None, help="the artefact [default: the package's lvenv/data/anatomy/regression[_MODEL].json]")
 @click.option("--restarts", type=click.IntRange(min=0), default=5, show_default=True, help="optimiser restarts per Gaussian process")
 @click.option("--folds", type=click.IntRange(min=2), default=5, show_default=True, help="cross-validation folds")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--json", "as_json", is_flag=True, help="print the cross-validation figures as JSON")
-def campaign_regress_command(directory, out_path, restarts, folds, seed, as_json) -> int:
+def campaign_regress_command(directory, model, out_path, restarts, folds, seed, as_json) -> int:
     """Fit the Gaussian-process regression from geometry to the trained maps over the campaign's
     accepted anatomies, cross-validate it and write the artefact lvenv.anatomy.from_geometry loads."""
-    from lvenv.anatomy import ARTEFACT
     from optim import campaign, regression
 
-    fitted = regression.fit(campaign.DATASET if directory is None else directory, restarts=restarts, folds=folds, seed=seed)
-    path = regression.save(fitted, ARTEFACT if out_path is None else out_path)
+    fitted = regression.fit(campaign.DATASET if directory is None else directory, restarts=restarts, folds=folds, seed=seed, model=model)
+    path = regression.save(fitted, out_path)
     cv = {name: spec.get("cv", "fixed") for name, spec in fitted.outputs.items()}
     if as_json:
         _print_json({"artefact": str(path), "anatomies": len(fitted.ids), "cv": cv})

@@ -20,7 +20,8 @@ field says how to unload it, ``{"strain": ε}`` (the paper's rule, `lvenv.anatom
 :data:`lvenv.anatomy.ED_STRAIN`) or ``{"edp": p}`` (kPa: the strain at which the predicted
 passive curve reaches the imaged cavity volume at that end-diastolic pressure,
 `lvenv.anatomy.unload_to_volume`). ``"lo": "regression"`` takes the LO maps the anatomy
-regression predicts for the (unloaded) geometry (`lvenv.anatomy.from_geometry`). What was done
+regression predicts for the (unloaded) geometry (`lvenv.anatomy.from_geometry`: the regression of
+the record's LO heart model, which also gives a multi-element heart its cells' onsets). What was done
 is kept in :attr:`Patient.anatomy` (the imaged geometry, the strain, the maps' predictive sd),
 which the record round-trips; the resolved record holds the unloaded geometry and the maps'
 values, so reading it again does not unload twice.
@@ -199,9 +200,14 @@ class Patient:
             maps = None if record.get("lo") == "regression" else parts.get("lo", LOParams())  # None: the regression's, at each trial shape
             parts["geometry"], anatomy["unloading"] = _unloaded(parts["geometry"], record["unload"], maps)
         if record.get("lo") == "regression":
-            from lvenv.anatomy import predicted_maps
+            from lvenv.anatomy import from_geometry, maps_note
 
-            parts["lo"], anatomy["maps"] = predicted_maps(parts["geometry"])
+            model = presets.model_of(parts.get("elements"))
+            if model is None:
+                raise InputError(f"patient.lo = 'regression': the record's elements {parts['elements'].model_key()} are no LO heart model of "
+                                 f"{list(presets.LO_MODELS)}, and only those have an anatomy regression")
+            trained = from_geometry(parts["geometry"], model=model)
+            parts["lo"], parts["elements"], anatomy["maps"] = trained.lo, trained.elements, maps_note(trained)
         return cls(
             name=record["name"],
             heart=Heart(**parts),

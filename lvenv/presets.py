@@ -27,10 +27,10 @@ import numpy as np
 
 from lvenv import trained
 from lvenv.geometry import Geometry
-from lvenv.params import Circulation, Heart, LOParams
+from lvenv.params import Arrangement, Circulation, Heart, LOParams
 from lvenv.validation import InputError, choice
 
-__all__ = ["normal", "heart_failure", "LO_SETS", "LO_MODELS", "MULTI_ELEMENT_MODELS", "record_name", "ONSET_RANGE", "onset_quantiles", "lo_params", "training_circulation", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
+__all__ = ["normal", "heart_failure", "LO_SETS", "LO_MODELS", "MULTI_ELEMENT_MODELS", "record_name", "check_model", "model_of", "ONSET_RANGE", "onset_quantiles", "lo_params", "training_circulation", "training_condition", "TRAINING_CONDITIONS", "N_UNLOADED", "HF_UNLOADED", "N_END_DIASTOLE", "HF_END_DIASTOLE"]
 
 N_UNLOADED = Geometry(Rb=35.0, L=9.6, Z=54.0, H=12.0, e=0.70, C0=-53.0)
 HF_UNLOADED = Geometry(Rb=38.0, L=10.0, Z=49.0, H=7.7, e=0.66, C0=-64.0)
@@ -58,6 +58,21 @@ MULTI_ELEMENT_MODELS = tuple(name for name, spec in LO_MODELS.items() if spec is
 #: A multi-element model's cells start at the wall's activation times at quantiles evenly
 #: spaced over this range (:func:`onset_quantiles`).
 ONSET_RANGE = (0.05, 0.95)
+
+
+def check_model(model: str) -> str:
+    """``model`` if it names an LO heart model of :data:`LO_MODELS`, else an
+    :class:`~lvenv.validation.InputError` naming it and the models."""
+    return choice("model", model, tuple(LO_MODELS))
+
+
+def model_of(elements: Arrangement | None) -> str | None:
+    """The name in :data:`LO_MODELS` of the LO heart model ``elements`` (``Heart.elements``)
+    is, whatever its onsets: "single" for None; None if no named model has its kind, cells and
+    spread."""
+    if elements is None:
+        return "single"
+    return next((name for name, spec in LO_MODELS.items() if spec is not None and spec == elements.model_key()), None)
 
 
 def onset_quantiles(cells: int) -> tuple[float, ...]:
@@ -102,7 +117,7 @@ def heart_failure(lo: str = "trained", model: str = "single") -> Heart:
 
 
 def _preset(heart: str, geometry: Geometry, lo: str, model: str) -> Heart:
-    choice("model", model, tuple(LO_MODELS))
+    check_model(model)
     if model == "single":
         return Heart(geometry=geometry, lo=lo_params(heart, lo), circulation=Circulation())
     if choice("lo", lo, LO_SETS) != "trained":

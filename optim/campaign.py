@@ -39,7 +39,10 @@ Only ``accepted`` anatomies enter the regression. Every reason is written down.
   cohort without an FE run;
 * ``log.jsonl``: one line per finished anatomy (worker count, start, end, FE seconds per case,
   whether each run came from the cache), from which :func:`throughput` computes anatomies per
-  hour.
+  hour;
+* ``models/<model>.csv``: a multi-element LO heart (`lvenv.presets.LO_MODELS`) trained on every
+  accepted anatomy's traces, no FE run (:func:`train_model_table`, resumable): its maps, C per
+  training beat and its cells' onsets, which `optim.regression.fit` regresses with ``model=``.
 
 **Resuming.** Rows are written as anatomies finish (atomically), and the oracle keeps every
 finished FE run by content hash, so a killed campaign resumes with the same command: finished
@@ -71,10 +74,10 @@ from scipy.stats import qmc
 
 import fe_oracle
 from fe_oracle import cache as oracle_cache
-from lvenv import archive, jitcache
+from lvenv import archive, jitcache, presets
 from lvenv.geometry import Geometry, GeometryError, cavity_volume
 from lvenv.params import CellParams, LOParams
-from lvenv.trained import builtin
+from lvenv.trained import TrainedLO, builtin
 from lvenv.validation import InputError, choice, integer, real, writable
 from optim import congruency
 from optim.cluster import client
@@ -83,6 +86,7 @@ from optim.cohort import GEOMETRY_COLUMNS
 __all__ = [
     "BOX", "DECIMALS", "DATASET", "FORMAT_VERSION", "CONTRACTION_LIMIT", "STATUSES", "COLUMNS", "Settings", "CampaignError", "Interrupted",
     "design", "run", "solve_anatomy", "trace_archive", "read_index", "oracle_data", "throughput",
+    "model_columns", "model_table_path", "read_model_table", "single_record", "train_model_table",
 ]
 
 #: Sampling box of the unloaded geometry (mm; e dimensionless; C0 degrees): the two Table 1
@@ -495,3 +499,89 @@ def throughput(directory: str | os.PathLike[str] = DATASET) -> list[dict[str, An
                     "median_anatomy_min": float(np.median([(g["end"] - g["start"]) / 60.0 for g in group]))})
     return out
 
+
+
+# ---------------------------------------------------------------------------- a multi-element model over the dataset
+def model_columns(model: str) -> tuple[str, ...]:
+    """The columns of the table of LO heart model ``model`` (:func:`train_model_table`): ``id``,
+    ``split``, the trained LO parameters, C and C per beat, each cell's onset ``onset_<k>``
+    (s, relative to the LO delay), the training time (s) and when it finished."""
+    cells = presets.LO_MODELS[choice("model", model, presets.MULTI_ELEMENT_MODELS)][1]
+    return ("id", "split", *TRAINED, "C", "C_1", "C_2", "C_3", *(f"onset_{k}" for k in range(1, cells + 1)), "train_s", "finished")
+
+
+def model_table_path(directory: str | os.PathLike[str], model: str) -> pathlib.Path:
+    """Where a dataset keeps the table of ``model``: ``models/<model>.csv``."""
+    return pathlib.Path(directory) / "models" / f"{choice('model', model, presets.MULTI_ELEMENT_MODELS)}.csv"
+
+
+def read_model_table(directory: str | os.PathLike[str], model: str) -> list[dict[str, Any]]:
+    """The rows of ``model``'s table, numbers as floats (no table yet: none); a
+    :class:`CampaignError` naming the file, line and column if it is malformed."""
+    path, columns = model_table_path(directory, model), model_columns(model)
+    if not path.exists():
+        return []
+    try:
+        with path.open(newline="", encoding="utf-8") as handle:
+            reader = csv.DictReader(handle)
+            header, raw = tuple(reader.fieldnames or ()), list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise CampaignError(f"{str(path)!r} cannot be read ({type(err).__name__}: {err})") from None
+    if header != columns:
+        raise CampaignError(f"{str(path)!r} has the columns {list(header)}; a {model} table has {list(columns)}")
+    rows = []
+    for line, record in enumerate(raw, start=2):
+        row: dict[str, Any] = {}
+        for column in columns:
+            if column in ("id", "split", "finished"):
+                row[column] = record[column]
+                continue
+            try:
+                row[column] = float(record[column])
+            except ValueError:
+                raise CampaignError(f"{str(path)!r} line {line}: column {column} = {record[column]!r} is not a number") from None
+        rows.append(row)
+    return rows
+
+
+def single_record(directory: str | os.PathLike[str], row: Mapping[str, Any], data: congruency.OracleData) -> TrainedLO:
+    """The single-cell record of an accepted anatomy: its index ``row`` (trained maps, C) on its
+    dataset traces ``data``."""
+    c = {"C": row["C"], **{str(k): row[f"C_{k}"] for k in congruency.CONDITIONS}}
+    return TrainedLO(data.geometry, LOParams(**{name: row[name] for name in TRAINED}), data.cell, c, None, row["passive_rmse_ml"],
+                     {"dataset": str(directory), "id": row["id"]})
+
+
+def train_model_table(directory: str | os.PathLike[str] = DATASET, model: str = "series3", *, budget: int = 480, steps_per_beat: int = 1000,
+                      limit: int | None = None, progress: Callable[[dict[str, Any], int, int], None] | None = None) -> list[dict[str, Any]]:
+    """Train LO heart model ``model`` (:data:`lvenv.presets.LO_MODELS`) on every accepted
+    anatomy of the dataset, from its traces (no FE run): its cells' onsets from the anatomy's
+    wall, {μ1, μ2, γ, delay} from its single-cell maps (`optim.congruency.train_model`, MADS
+    ``budget``, the LO beats at ``steps_per_beat``). Each finished anatomy is written at once
+    (the whole table, atomically), so an interrupted run resumes where it stopped; ``limit``: at
+    most this many anatomies this call. ``progress(row, done, total)`` is called with each new
+    row and the counts of this call. Returns the whole table."""
+    directory, columns = pathlib.Path(directory), model_columns(model)
+    budget = integer("budget", budget, 16)
+    path = model_table_path(directory, model)
+    rows = read_model_table(directory, model)
+    trained_ids = {r["id"] for r in rows}
+    pending = [r for r in read_index(directory) if r["status"] == "accepted" and r["id"] not in trained_ids][:limit]
+    for done, index_row in enumerate(pending, start=1):
+        t0 = time.perf_counter()
+        data = oracle_data(directory, index_row["id"])
+        trained = congruency.train_model(data, single_record(directory, index_row, data), model, budget=budget, steps_per_beat=steps_per_beat,
+                                         progress=False)
+        rows.append({"id": index_row["id"], "split": index_row["split"], **dataclasses.asdict(trained.lo),
+                     **{"C" if k == "C" else f"C_{k}": v for k, v in trained.congruency.items()},
+                     **{f"onset_{k}": x for k, x in enumerate(trained.elements.onsets, start=1)}, "train_s": time.perf_counter() - t0,
+                     "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
+        buffer = io.StringIO()
+        writer = csv.writer(buffer, lineterminator="\n")
+        writer.writerow(columns)
+        writer.writerows([_format(r.get(c)) for c in columns] for r in rows)
+        path.parent.mkdir(exist_ok=True)
+        archive.write_text(path, buffer.getvalue())
+        if progress is not None:
+            progress(rows[-1], done, len(pending))
+    return rows

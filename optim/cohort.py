@@ -23,13 +23,14 @@ and the central systolic pressure is left free (reported as ``fit_SBP_central_mm
 
 The heart: the base heart (``presets.normal(model=CohortOptions.model)``, the trained LO maps of
 the single cell by default, or of a multi-element LO heart, :data:`lvenv.presets.LO_MODELS`,
-which runs the fixed scheme and takes no row geometry; the amortised posterior flags its rows as
-not covered, and ``refine`` samples them by MCMC) at the row's heart rate,
+which runs the fixed scheme; the amortised posterior flags its rows as not covered, and
+``refine`` samples them by MCMC) at the row's heart rate,
 which is a per-member parameter of the LO heart (the beat period is 60 / HR), and with the row's
 geometry where given (the unloaded shape, as :class:`lvenv.geometry.Geometry` has it). A row
-with a geometry gets the LO maps of its own anatomy from the anatomy regression
-(:func:`lvenv.anatomy.predicted_maps`; ``CohortOptions.maps = "regression"``, the default), or
-keeps the base heart's (``"base"``); the output's ``maps`` column says which, with any
+with a geometry gets the LO maps of its own anatomy from the anatomy regression of the base
+heart's model (:func:`lvenv.anatomy.from_geometry`, and a multi-element heart its cells'
+onsets too; ``CohortOptions.maps = "regression"``, the default), or keeps the base heart's
+(``"base"``); the output's ``maps`` column says which, with any
 extrapolation of the regression (a geometry outside its sampled box) or clipped parameter.
 Without an artefact to load (:data:`lvenv.anatomy.ARTEFACT_ENV` naming a missing file) the
 regression choice is refused before any fit. The fitted parameters are :data:`lvenv.identification.DEFAULT_ACTION_PARAMS`
@@ -101,7 +102,7 @@ from typing import Any
 import numpy as np
 
 from lvenv import archive, presets
-from lvenv.anatomy import ExtrapolationWarning, Regression, load_regression, predicted_maps
+from lvenv.anatomy import ExtrapolationWarning, Regression, from_geometry, load_regression, maps_note
 from lvenv.env.core import default_scheme
 from lvenv.env.vector import info_metrics
 from lvenv.identification import ACTION_BOUNDS, DEFAULT_ACTION_PARAMS, ParameterSpace
@@ -246,8 +247,9 @@ def _in_columns(message: str) -> str:
 
 def _patient(row: Mapping[str, str], base: Heart, regression: Regression | None = None) -> Patient:
     """The patient of one report row (module docstring); InputError naming the column, in the
-    CSV's own units, on bad input. ``regression``: the anatomy regression that gives a row with a
-    geometry its maps (None: the base heart's)."""
+    CSV's own units, on bad input. ``regression``: the anatomy regression of the base heart's
+    model that gives a row with a geometry its maps, and a multi-element heart its onsets (None:
+    the base heart's)."""
     v = {c: _value(row, c, c in REQUIRED) for c in (*REQUIRED[1:], "EDV_ml", "ESV_ml")}
     if not EF_MIN * 100.0 < v["EF_pct"] <= 100.0:
         raise InputError(f"EF_pct = {v['EF_pct']:g} must lie in ({100 * EF_MIN:g}, 100] (a percentage; 0.6 would be 0.6 %)")
@@ -280,9 +282,6 @@ def _patient(row: Mapping[str, str], base: Heart, regression: Regression | None 
     heart = base.replace(HR=v["HR_bpm"])
     anatomy = {}
     if any(g is not None for g in geometry.values()):
-        if base.elements is not None:
-            raise InputError(f"{', '.join(c for c, f in GEOMETRY_COLUMNS.items() if geometry[f] is not None)}: the base heart is a multi-element "
-                             "heart, whose cells' onsets and maps belong to its own wall; a row with its own geometry needs the single-cell base heart (model 'single')")
         try:
             shape = dataclasses.replace(base.geometry, **{k: g for k, g in geometry.items() if g is not None})
         except InputError as err:
@@ -291,8 +290,9 @@ def _patient(row: Mapping[str, str], base: Heart, regression: Regression | None 
         if regression is not None:
             with warnings.catch_warnings():  # the row's `maps` cell reports them
                 warnings.simplefilter("ignore", ExtrapolationWarning)
-                lo, anatomy["maps"] = predicted_maps(shape, regression)
-            heart = dataclasses.replace(heart, lo=lo)
+                trained = from_geometry(shape, regression, model=presets.model_of(base.elements))
+            heart = dataclasses.replace(heart, lo=trained.lo, elements=trained.elements)
+            anatomy["maps"] = maps_note(trained)
     return Patient(str(row["id"]).strip(), heart, targets, weights, anatomy)
 
 
@@ -360,7 +360,10 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None, maps: 
         regression = None
         if maps == "regression" and set(columns) & set(GEOMETRY_COLUMNS):
             try:
-                regression = load_regression()
+                model = presets.model_of(base.elements)
+                if model is None:
+                    raise InputError(f"the base heart's cells {base.elements.model_key()} are no model of {list(presets.LO_MODELS)}, and only those have one")
+                regression = load_regression(model=model)
             except InputError as err:
                 raise CohortError(f"{str(path)!r} has geometry columns, whose maps come from the anatomy regression: {err}; "
                                   "or fit them with the base heart's maps (maps = 'base', `lvenv cohort --maps base`)") from None

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from lvenv import presets
 from lvenv.anatomy import Regression, map_draws
 from lvenv.identification import DEFAULT_ACTION_PARAMS
 from lvenv.patients import Patient
@@ -79,7 +80,7 @@ def refit(patient: Patient, parameters: Mapping[str, float], draws: int, *, seed
     ``seed``: of the draws; ``budget``, ``steps_per_beat``, ``plausibility``: each refit's
     (:func:`optim.lm.fit_lm`); ``regression``: the artefact the maps came from (None: the one
     the patient's record used, :func:`lvenv.anatomy.load_regression`); ``progress(done, total)``
-    after each refit. A patient whose maps do not come from the regression raises
+    after each refit; the regression is of the patient's LO heart model. A patient whose maps do not come from the regression raises
     :class:`~lvenv.validation.InputError`.
     """
     draws, seed = integer("draws", draws, 2, 1000), integer("seed", seed, 0)
@@ -87,7 +88,7 @@ def refit(patient: Patient, parameters: Mapping[str, float], draws: int, *, seed
     if missing := [n for n in DEFAULT_ACTION_PARAMS if n not in parameters]:
         raise InputError(f"parameters lack {missing}; a refit starts from every one of {list(DEFAULT_ACTION_PARAMS)}")
     start = patient.heart.replace(**{n: parameters[n] for n in DEFAULT_ACTION_PARAMS})
-    maps = [patient.heart.lo, *map_draws(patient.heart.geometry, draws, seed=seed, regression=regression)]
+    maps = [patient.heart.lo, *map_draws(patient.heart.geometry, draws, seed=seed, regression=regression, model=presets.model_of(patient.heart.elements))]
     results = []
     for j, lo in enumerate(maps):
         one = dataclasses.replace(patient, name=f"{patient.name}, maps {j}", heart=start.replace(lo=lo))

@@ -17,6 +17,10 @@ prediction ŷ is its median and its 2-sd band is taken on the log scale. An outp
 (a parameter congruency training keeps fixed, such as α and β) gets no GP: the artefact marks
 it ``fixed`` and predicts that value with sd 0, and it has no cross-validation figures.
 
+A multi-element LO heart (``model="series3"``) is regressed the same way over its table of the
+dataset (`optim.campaign.train_model_table`), with its cells' onsets as further outputs
+(:func:`outputs_of`); the artefact records the model (``provenance["model"]``).
+
 `held_out(regression)` checks the regression where it matters, on the campaign's held-out
 anatomies (sampled apart, never in the training set): the congruency C of the GP-predicted maps
 against each anatomy's own FE beats, beside that of its directly trained maps and of the N
@@ -38,13 +42,14 @@ from typing import Any
 import numpy as np
 
 from lvenv import archive
-from lvenv.anatomy import ARTEFACT, INPUTS, LO_OUTPUTS, Regression, kernel, log_normal
-from lvenv.params import LOParams
+from lvenv import presets
+from lvenv.anatomy import INPUTS, LO_OUTPUTS, Regression, artefact, kernel, log_normal, onset_outputs
+from lvenv.params import Arrangement, LOParams
 from lvenv.validation import InputError, integer
 from optim import campaign
 from optim.cohort import GEOMETRY_COLUMNS
 
-__all__ = ["OUTPUTS", "NON_NEGATIVE", "MIN_ANATOMIES", "training_set", "is_fixed", "in_log", "fit_gp", "cross_validate", "fit", "save", "held_out"]
+__all__ = ["OUTPUTS", "NON_NEGATIVE", "MIN_ANATOMIES", "outputs_of", "training_set", "is_fixed", "in_log", "fit_gp", "cross_validate", "fit", "save", "held_out"]
 
 #: What the regression predicts: the LO parameters and the trained heart's C.
 OUTPUTS = (*LO_OUTPUTS, "C")
@@ -55,13 +60,24 @@ NON_NEGATIVE = (*(f.name for f in dataclasses.fields(LOParams) if f.metadata["ra
 MIN_ANATOMIES = 10
 
 
-def training_set(directory: str | os.PathLike[str] = campaign.DATASET, split: str = "train") -> tuple[list[str], np.ndarray, dict[str, np.ndarray]]:
-    """Ids, geometries (anatomies × 6, `Geometry` field order) and trained values of the
-    accepted anatomies of ``split`` ("train" or "heldout")."""
+def outputs_of(model: str = "single") -> tuple[str, ...]:
+    """What a regression of LO heart ``model`` predicts: :data:`OUTPUTS`, and a multi-element
+    model's cells' onsets (:func:`lvenv.anatomy.onset_outputs`)."""
+    return (*OUTPUTS, *onset_outputs(model))
+
+
+def training_set(directory: str | os.PathLike[str] = campaign.DATASET, split: str = "train", model: str = "single") -> tuple[list[str], np.ndarray, dict[str, np.ndarray]]:
+    """Ids, geometries (anatomies × 6, `Geometry` field order) and trained values
+    (:func:`outputs_of`) of the accepted anatomies of ``split`` ("train" or "heldout"): the
+    single cell's from the index, a multi-element model's from its table
+    (:func:`optim.campaign.train_model_table`; anatomies it has not trained are left out)."""
     rows = [r for r in campaign.read_index(directory) if r["status"] == "accepted" and r["split"] == split]
+    if presets.check_model(model) != "single":
+        table = {r["id"]: r for r in campaign.read_model_table(directory, model)}
+        rows = [{**r, **table[r["id"]]} for r in rows if r["id"] in table]
     column = {name: col for col, name in GEOMETRY_COLUMNS.items()}
     x = np.array([[r[column[k]] for k in INPUTS] for r in rows], float).reshape(len(rows), len(INPUTS))
-    return [r["id"] for r in rows], x, {name: np.array([r[name] for r in rows], float) for name in OUTPUTS}
+    return [r["id"] for r in rows], x, {name: np.array([r[name] for r in rows], float) for name in outputs_of(model)}
 
 
 def _scaling(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -133,16 +149,23 @@ def cross_validate(x: np.ndarray, y: dict[str, np.ndarray], folds: int = 5, rest
 
 
 def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int = 5, folds: int = 5, seed: int = 0,
-        outputs: Sequence[str] = OUTPUTS) -> Regression:
-    """The regression over the accepted training anatomies of the campaign in ``directory``,
-    with each output's cross-validation figures (module docstring)."""
+        outputs: Sequence[str] | None = None, model: str = "single") -> Regression:
+    """The regression of LO heart ``model``'s maps over the accepted training anatomies of the
+    campaign in ``directory``, with each output's cross-validation figures (module docstring).
+    ``outputs``: default all of :func:`outputs_of`; a multi-element model's regression needs
+    the LO parameters and its cells' onsets."""
     restarts, seed = integer("restarts", restarts, 0), integer("seed", seed, 0)
-    unknown = [o for o in outputs if o not in OUTPUTS]
+    known = outputs_of(model)
+    outputs = known if outputs is None else tuple(outputs)
+    unknown = [o for o in outputs if o not in known]
     if unknown:
-        raise InputError(f"outputs {unknown} are not trained quantities; choose from {list(OUTPUTS)}")
-    ids, x, y = training_set(directory)
+        raise InputError(f"outputs {unknown} are not trained quantities of model {model!r}; choose from {list(known)}")
+    if model != "single" and (missing := [o for o in (*LO_OUTPUTS, *onset_outputs(model)) if o not in outputs]):
+        raise InputError(f"outputs: a regression of model {model!r} needs {missing} too (its cells' onsets and LO parameters)")
+    ids, x, y = training_set(directory, model=model)
     if len(ids) < MIN_ANATOMIES:
-        raise InputError(f"the campaign in {str(directory)!r} has {len(ids)} accepted training anatomies; a regression needs at least {MIN_ANATOMIES}")
+        trained = "" if model == "single" else f" trained for model {model!r} (`optim.campaign.train_model_table`)"
+        raise InputError(f"the campaign in {str(directory)!r} has {len(ids)} accepted training anatomies{trained}; a regression needs at least {MIN_ANATOMIES}")
     y = {name: y[name] for name in outputs}
     cv = cross_validate(x, y, folds, restarts, seed)
     x_mean, x_scale = _scaling(x)
@@ -161,17 +184,19 @@ def fit(directory: str | os.PathLike[str] = campaign.DATASET, *, restarts: int =
                        "cv": {k: v for k, v in cv[name].items() if k in ("r2", "rmse", "coverage_2sd")} | {"folds": folds}}
     config = json.loads((pathlib.Path(directory) / "campaign.json").read_text())
     index = (pathlib.Path(directory) / "anatomies.csv").read_bytes()
-    provenance = {"dataset": str(directory), "dataset_sha256": hashlib.sha256(index).hexdigest()[:16], "settings": config["settings"],
+    provenance = {"model": model, "dataset": str(directory), "dataset_sha256": hashlib.sha256(index).hexdigest()[:16], "settings": config["settings"],
                   "oracle_code": sorted({r["oracle_code"] for r in campaign.read_index(directory) if r["id"] in set(ids)}),
+                  **({} if model == "single" else {"model_table_sha256": hashlib.sha256(campaign.model_table_path(directory, model).read_bytes()).hexdigest()[:16]}),
                   "restarts": restarts, "seed": seed, "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                   "cv_predictions": {name: {"predicted": v["predicted"], "sd": v["sd"]} for name, v in cv.items()}}
     box = {k: tuple(v) for k, v in config["box"].items()}
     return Regression(x_mean, x_scale, xs, ys, specs, box, tuple(ids), provenance)
 
 
-def save(regression: Regression, path: str | os.PathLike[str] = ARTEFACT) -> pathlib.Path:
-    """Write the artefact (JSON) atomically; returns its path."""
-    return archive.write_text(path, json.dumps(regression.to_dict(), indent=1) + "\n")
+def save(regression: Regression, path: str | os.PathLike[str] | None = None) -> pathlib.Path:
+    """Write the artefact (JSON) atomically, by default the package's of its model
+    (:func:`lvenv.anatomy.artefact`); returns its path."""
+    return archive.write_text(artefact(regression.model) if path is None else path, json.dumps(regression.to_dict(), indent=1) + "\n")
 
 
 
@@ -180,19 +205,32 @@ def held_out(regression: Regression, directory: str | os.PathLike[str] = campaig
     """The regression on the campaign's accepted held-out anatomies, from their dataset traces
     (no FE run): per anatomy the C of its directly trained heart (``C_trained``), of the
     GP-predicted maps (``C_predicted``) and of ``baseline``'s maps (default: the shipped trained
-    N record, ``C_baseline``), each against the anatomy's own three training beats."""
+    N record of the regression's model, ``C_baseline``), each against the anatomy's own three
+    training beats. A multi-element model's hearts run with their own cells' onsets: the
+    trained ones of its table (anatomies it has not trained are left out), the predicted ones,
+    and N's."""
     from lvenv.anatomy import from_geometry
     from lvenv.trained import builtin
     from optim import congruency
 
-    baseline = builtin("normal").lo if baseline is None else baseline
+    model = regression.model
+    n_record = builtin(presets.record_name("normal", model))
+    baseline = n_record.lo if baseline is None else baseline
     rows = [r for r in campaign.read_index(directory) if r["status"] == "accepted" and r["split"] == "heldout"]
+    if model != "single":
+        table = {r["id"]: r for r in campaign.read_model_table(directory, model)}
+        rows = [{**r, **table[r["id"]]} for r in rows if r["id"] in table]
     out = []
     for row in rows:
         data = campaign.oracle_data(directory, row["id"])
         predicted = from_geometry(data.geometry, regression)
         trained = LOParams(**{name: row[name] for name in LO_OUTPUTS})
-        c = congruency.overall(congruency.run_congruency(data, [trained, predicted.lo, baseline], steps_per_beat))
+        if model == "single":
+            c = congruency.overall(congruency.run_congruency(data, [trained, predicted.lo, baseline], steps_per_beat))
+        else:
+            own = Arrangement(*presets.LO_MODELS[model], onsets=tuple(row[name] for name in onset_outputs(model)))
+            c = [congruency.overall(congruency.run_congruency(data, [lo], steps_per_beat, arrangement)[0])
+                 for lo, arrangement in ((trained, own), (predicted.lo, predicted.elements), (baseline, n_record.elements))]
         out.append({"id": row["id"], "C_trained": float(c[0]), "C_predicted": float(c[1]), "C_baseline": float(c[2]),
                     "C_row": row["C"], "predicted_C": predicted.congruency["C"]})
     return out

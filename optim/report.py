@@ -26,7 +26,8 @@ calibration        ``out/identify/calibration.json``;                     ``pyth
                    ``out/bench/amortised.json``;                          ``lvenv bench amortised``;
                    ``out/compare/compare.json``                           ``python scripts/compare_amortised.py``
 benchmarks         ``out/bench/*.json``                                   ``lvenv bench NAME``
-anatomy            ``out/anatomy/anatomy.md`` and its figures             ``python scripts/anatomy_study.py``
+anatomy            ``out/anatomy/anatomy.md`` and its figures;            ``python scripts/anatomy_study.py``;
+                   ``out/anatomy/anatomy_series3.md``                     ``… --model series3``
 =================  =====================================================  ===============================================
 """
 
@@ -287,9 +288,19 @@ def _sections(root: Path, report_dir: Path, level: int) -> dict[str, list[str]]:
         "inverse problem": _inverse(root, report_dir, level),
         "calibration": _calibration(root, level),
         "benchmarks": _benchmarks(root, level),
-        "anatomy": _markdown_file(root / "anatomy" / "anatomy.md", "python scripts/anatomy_study.py", report_dir,
-                                  tuple(root / "anatomy" / f"anatomy_{name}.png" for name in ("scatter", "contours", "parity"))),
+        "anatomy": _anatomy(root / "anatomy", report_dir, level),
     }
+
+
+def _anatomy(folder: Path, report_dir: Path, level: int) -> list[str]:
+    """The single cell's regression with its figures, then each multi-element model's that has been fitted."""
+    lines = _markdown_file(folder / "anatomy.md", "python scripts/anatomy_study.py", report_dir,
+                           tuple(folder / f"anatomy_{name}.png" for name in ("scatter", "contours", "parity")))
+    for model in presets.MULTI_ELEMENT_MODELS:
+        if (folder / f"anatomy_{model}.md").exists():
+            lines += ["#" * level + f" The regression of the {model} heart's maps", "",
+                      *_markdown_file(folder / f"anatomy_{model}.md", f"python scripts/anatomy_study.py --model {model}", report_dir)]
+    return lines
 
 
 def _now() -> str:

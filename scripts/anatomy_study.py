@@ -1,6 +1,7 @@
 """The anatomy campaign's results: status, throughput, the regression's cross-validation, the held-out check and the figures; prints one JSON object.
 
     python scripts/anatomy_study.py [--dataset lvenv/data/anatomy] [--out out/anatomy] [--restarts 5] [--artefact PATH]
+    python scripts/anatomy_study.py --model series3 [...]
 
 Reads the campaign's dataset (`optim.campaign`; no FE run), counts the anatomies by status with
 every reason for leaving one out, and the throughput per session and worker count from the
@@ -15,6 +16,11 @@ GP-predicted, the directly trained and the N record's maps on each held-out anat
 (`optim.regression.held_out`), and draws the Fig. 9-style scatter and contour plots and the
 parity plot under ``--out``. ``<out>/anatomy.md`` holds the tables, the command and the date for
 ``lvenv report``.
+
+``--model series3``: the regression of a multi-element LO heart's maps and cells' onsets over
+the anatomies its table holds (``lvenv campaign train-model``, `optim.campaign.train_model_table`),
+its cross-validation and held-out check (each heart with its own cells' onsets), written to its
+artefact (default `lvenv.anatomy.artefact`) and ``<out>/anatomy_<model>.md``; no unloading check.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from lvenv import plots, presets  # noqa: E402
-from lvenv.anatomy import ARTEFACT, ED_STRAIN, unload  # noqa: E402
+from lvenv.anatomy import ED_STRAIN, artefact, unload  # noqa: E402
 from lvenv.geometry import cavity_volume  # noqa: E402
 from optim import campaign, regression, unloading  # noqa: E402
 
@@ -54,6 +60,12 @@ def _markdown(summary: dict, command: str) -> str:
             lines.append(f"| {group}: strain {100 * ED_STRAIN[group]:.0f} % | {f['EDP_kPa']:.2f} | {f['anatomies']} | {pair('EDV_error')} | {pair('V0_error_rule')} | "
                          f"{pair('V0_error_fit')} | " + (f"{pair('V0_error_gp')} | " if gp else "")
                          + f"{100 * f['strain_fe_median']:.1f} % ({100 * f['strain_fe_min']:.1f}–{100 * f['strain_fe_max']:.1f} %) |")
+    return "\n".join(lines + _regression_lines(summary)) + "\n"
+
+
+def _regression_lines(summary: dict) -> list[str]:
+    """The cross-validation and held-out tables of ``summary``."""
+    lines = []
     if "cv" in summary:
         lines += ["", f"Cross-validation ({summary['folds']}-fold, {summary['training_anatomies']} anatomies):", "",
                   "| output | regressed | R² | RMSE | within 2 sd |", "|---|---|---|---|---|"]
@@ -63,7 +75,7 @@ def _markdown(summary: dict, command: str) -> str:
     if summary.get("held_out"):
         lines += ["", "| held-out anatomy | C trained (%) | C GP-predicted (%) | C N maps (%) |", "|---|---|---|---|"]
         lines += [f"| {r['id']} | {100 * r['C_trained']:.2f} | {100 * r['C_predicted']:.2f} | {100 * r['C_baseline']:.2f} |" for r in summary["held_out"]]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def _unloading_rule() -> dict:
@@ -83,8 +95,21 @@ def main() -> None:
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/anatomy"))
     parser.add_argument("--restarts", type=int, default=5)
     parser.add_argument("--folds", type=int, default=5)
-    parser.add_argument("--artefact", type=pathlib.Path, default=ARTEFACT)
+    parser.add_argument("--model", choices=tuple(presets.LO_MODELS), default="single", help="the LO heart whose maps to regress")
+    parser.add_argument("--artefact", type=pathlib.Path, default=None, help="default: the package's artefact of --model")
     args = parser.parse_args()
+    args.artefact = artefact(args.model) if args.artefact is None else args.artefact
+    command = "python " + " ".join(sys.argv)
+    if args.model != "single":
+        fitted = regression.fit(args.dataset, restarts=args.restarts, folds=args.folds, model=args.model)
+        regression.save(fitted, args.artefact)
+        summary = {"date": datetime.date.today().isoformat(), "model": args.model, "training_anatomies": len(fitted.ids), "folds": args.folds,
+                   "artefact": str(args.artefact), "cv": {k: v["cv"] | {"log": v["log"]} if "cv" in v else "fixed" for k, v in fitted.outputs.items()},
+                   "held_out": regression.held_out(fitted, args.dataset)}
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / f"anatomy_{args.model}.md").write_text("\n".join([f"Made by `{command}` on {summary['date']}.", *_regression_lines(summary)]) + "\n")
+        print(json.dumps(summary, indent=2, default=float))
+        return
     rows = campaign.read_index(args.dataset)
     summary: dict = {
         "date": datetime.date.today().isoformat(),
@@ -116,7 +141,7 @@ def main() -> None:
     summary["unloading_fe"] = {group: {"EDP_kPa": edp[group], **figures} for group, figures in unloading.summary(rows).items()}
     summary["unloading_fe_rows"] = rows
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "anatomy.md").write_text(_markdown(summary, "python " + " ".join(sys.argv)))
+    (args.out / "anatomy.md").write_text(_markdown(summary, command))
     print(json.dumps(summary, indent=2, default=float))
 
 

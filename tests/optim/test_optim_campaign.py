@@ -216,3 +216,42 @@ def test_settings_are_validated_naming_the_field():
     with pytest.raises(InputError, match="settings.timeout_s"):
         Settings(timeout_s=0.0)
     assert Geometry(**{k: v for k, v in campaign.design(1)[0].items() if k in BOX})  # the design's rows are geometries
+
+
+@pytest.mark.fe
+def test_a_multi_element_model_is_trained_on_the_datasets_traces_and_resumes(tmp_path):
+    """The 3-cell heart on two anatomies of the package dataset (their FE traces, no FE run;
+    the onsets from the wall's eikonal), one of them already in the table (the package table's
+    row): only the other is trained, the row already there is kept as written, and a further
+    call has nothing left to train. The new row's C is what its maps and onsets give on the
+    anatomy's traces, and its onsets rise from the earliest cell with the median cell's at 0."""
+    import shutil
+
+    from lvenv.params import Arrangement, LOParams
+
+    directory = tmp_path / "dataset"
+    (directory / "traces").mkdir(parents=True)
+    shutil.copy(campaign.DATASET / "campaign.json", directory)
+    campaign._write_index(directory, [r for r in campaign.read_index(campaign.DATASET) if r["id"] in ("A000", "A001")])
+    for name in ("A000", "A001"):
+        shutil.copy(campaign.DATASET / "traces" / f"{name}.npz", directory / "traces")
+    table = campaign.model_table_path(directory, "series3")
+    table.parent.mkdir()
+    header, *lines = campaign.model_table_path(campaign.DATASET, "series3").read_text().splitlines()
+    table.write_text("\n".join([header, next(line for line in lines if line.startswith("A001,"))]) + "\n")
+    written = table.read_text()
+    seen = []
+    rows = campaign.train_model_table(directory, "series3", budget=16, steps_per_beat=500, progress=lambda row, done, total: seen.append((row["id"], done, total)))
+    assert [r["id"] for r in rows] == ["A001", "A000"] and seen == [("A000", 1, 1)] and table.read_text().startswith(written)
+    assert campaign.read_model_table(directory, "series3") == rows
+    new = rows[1]
+    onsets = (new["onset_1"], new["onset_2"], new["onset_3"])
+    assert onsets[0] < onsets[1] == 0.0 < onsets[2]
+    data = campaign.oracle_data(directory, "A000")
+    c = congruency.run_congruency(data, [LOParams(**{name: new[name] for name in campaign.TRAINED})], 500, Arrangement("series", 3, (1.0, 1.0), onsets=onsets))[0]
+    assert congruency.overall(c) == pytest.approx(new["C"], rel=1e-9)
+    assert campaign.train_model_table(directory, "series3", budget=16, steps_per_beat=500) == rows  # nothing left to train
+    done = subprocess.run([sys.executable, "-m", "lvenv.cli", "campaign", "train-model", str(directory), "--model", "series3"], capture_output=True, text=True)
+    assert done.returncode == 0 and "2 anatomies trained for series3" in done.stdout
+    with pytest.raises(InputError, match="model = 'single' is not one of"):
+        campaign.train_model_table(directory, "single")

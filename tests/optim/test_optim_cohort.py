@@ -198,20 +198,29 @@ def test_a_dask_local_cluster_gives_the_same_fits_as_one_process(reports_csv, tm
     assert json.loads((tmp_path / "split.csv.json").read_text())["options"]["slots"] == 1
 
 
-def test_a_multi_element_base_heart_fits_rows_of_its_own_wall_and_refuses_other_geometries(tmp_path):
+def test_a_multi_element_base_heart_takes_a_rows_geometry_with_its_own_regressions_maps_and_onsets(tmp_path):
     """A cohort on the 3-cell series heart (``model``; the fixed scheme): a row without geometry
-    fits that heart and its reported fit is its steady state; a row with its own geometry is a
-    bad row naming the columns (the cells' onsets belong to the base heart's wall)."""
+    fits that heart; a row with its own geometry gets the maps and cells' onsets the 3-cell
+    regression predicts (the shipped artefact), or keeps the base heart's with ``maps="base"``;
+    both rows fit in one batch, each reported fit being its own heart's steady state."""
+    from lvenv.anatomy import from_geometry
+
     options = dataclasses.replace(SMALL, budget=8, scheme=None, model="series3")
     base = options.base_heart()
     assert base.elements is not None and options.scheme == "fixed"
     path = _write(tmp_path / "r.csv", [[*GOOD, ""], ["B", *GOOD[1:], "40"]], [*HEADER, "Rb_mm"])
     parsed = read_reports(path, base=base)
-    (row,) = parsed.rows
-    assert row.patient.heart.elements == base.elements
-    assert [b.line for b in parsed.bad] == [3] and "Rb_mm: the base heart is a multi-element heart" in parsed.bad[0].reason
-    (result,) = fit_reports([row], options)
-    _check_reported_fit_against_an_independent_simulation(result, row.patient, options)
+    own, other = parsed.rows
+    assert not parsed.bad and own.patient.heart.elements == base.elements
+    predicted = from_geometry(other.patient.heart.geometry, model="series3")
+    assert other.patient.heart.geometry.Rb == 40.0 and other.patient.heart.lo == predicted.lo != base.lo
+    assert other.patient.heart.elements == predicted.elements and predicted.elements.onsets != base.elements.onsets
+    assert predicted.elements.model_key() == base.elements.model_key() and cohort.maps_label(other.patient) == "regression"
+    kept = read_reports(path, base=base, maps="base").rows[1].patient.heart
+    assert kept.lo == base.lo and kept.elements == base.elements and kept.geometry.Rb == 40.0
+    results = fit_reports([own, other], options)
+    for result, row in zip(results, (own, other)):
+        _check_reported_fit_against_an_independent_simulation(result, row.patient, options)
 
 
 def test_the_model_option_keeps_old_outputs_resumable_and_refuses_the_adaptive_scheme_for_cells_in_series():

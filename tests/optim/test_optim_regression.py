@@ -3,6 +3,7 @@
 and clear errors for malformed artefacts."""
 
 import csv
+import dataclasses
 import json
 import warnings
 
@@ -137,6 +138,60 @@ def test_malformed_or_missing_artefacts_are_refused_naming_the_problem(fitted, t
         fitted.predict([Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0)], ["zeta"])
 
 
+def _onsets(g: dict) -> tuple[float, float, float]:
+    """Cells' onsets (s) that follow the geometry smoothly: a longer, thicker wall activates over longer."""
+    spread = 0.02 + 0.0004 * (g["Z"] - 53) + 0.001 * (g["L"] - 10)
+    return -spread, 0.0, 1.4 * spread
+
+
+def test_a_multi_element_models_regression_predicts_its_maps_and_its_cells_onsets(dataset, tmp_path):
+    """A 3-cell table (trained values and onsets that follow the geometry, for some of the
+    anatomies): its regression predicts the onsets (the median cell's, 0 on every anatomy,
+    exactly), leaves the anatomies the table lacks out, and a record from it carries the cells;
+    it is refused where the single cell's is asked for, and a table of other columns is refused."""
+    import shutil
+
+    dataset = shutil.copytree(dataset, tmp_path / "dataset")
+    columns = campaign.model_columns("series3")
+    rows = [r for r in campaign.read_index(dataset) if r["id"] != "A005"]
+    table = campaign.model_table_path(dataset, "series3")
+    table.parent.mkdir()
+    with table.open("w", newline="") as handle:
+        writer = csv.writer(handle, lineterminator="\n")
+        writer.writerow(columns)
+        for r in rows:
+            g = {name: r[col] for col, name in GEOMETRY_COLUMNS.items()}
+            values = {**r, "gamma": 0.5 * r["gamma"], "C_1": r["C"], "C_2": r["C"], "C_3": r["C"], **dict(zip(("onset_1", "onset_2", "onset_3"), _onsets(g))), "train_s": 1.0, "finished": "x"}
+            writer.writerow([values[c] for c in columns])
+    from lvenv.cli import main
+
+    path = tmp_path / "series3.json"
+    assert main(["campaign", "regress", str(dataset), "--model", "series3", "--out", str(path), "--restarts", "0", "--folds", "3", "--json"]) == 0
+    fitted3 = Regression.load(path)
+    assert fitted3.model == "series3" and set(fitted3.outputs) == set(regression.outputs_of("series3"))
+    assert "A005" not in fitted3.ids and len(fitted3.ids) == N - 1
+    assert fitted3.outputs["onset_2"] == {"mean": 0.0, "fixed": True} and fitted3.outputs["onset_1"]["cv"]["r2"] > 0.9
+    geometry = Geometry(35.0, 9.6, 54.0, 12.0, 0.70, -53.0)
+    trained = anatomy.from_geometry(geometry, fitted3)
+    truth = _onsets(dataclasses.asdict(geometry))
+    assert trained.elements.model_key() == ("series", 3, (1.0, 1.0)) and trained.elements.onsets[1] == 0.0
+    np.testing.assert_allclose(trained.elements.onsets, truth, atol=0.1 * truth[2])
+    assert trained.lo.gamma == pytest.approx(0.5 * _truth(dataclasses.asdict(geometry))["gamma"], rel=0.05)
+    assert anatomy.from_geometry(geometry, fitted3, model="series3").elements == trained.elements
+    with pytest.raises(InputError, match="predicts the maps of model 'series3', not of model 'single'"):
+        anatomy.from_geometry(geometry, fitted3, model="single")
+    with pytest.raises(InputError, match="needs \\['onset_1', 'onset_2', 'onset_3'\\] too"):
+        regression.fit(dataset, restarts=0, model="series3", outputs=anatomy.LO_OUTPUTS)
+    record = fitted3.to_dict()
+    del record["outputs"]["onset_3"], record["y"]["onset_3"]
+    (tmp_path / "bad.json").write_text(json.dumps(record))
+    with pytest.raises(InputError, match=r"predicts its cells' onsets, and \['onset_3'\] are missing"):
+        Regression.load(tmp_path / "bad.json")
+    table.write_text("id,split,mu1\nA000,train,0.1\n")
+    with pytest.raises(campaign.CampaignError, match="series3.csv' has the columns"):
+        regression.fit(dataset, restarts=0, model="series3")
+
+
 def test_too_few_anatomies_make_no_regression(tmp_path):
     campaign.run(tmp_path, n=3, settings=Settings(backend="multielement", budget=16), limit=0)
     with pytest.raises(InputError, match="has 0 accepted training anatomies; a regression needs at least 10"):
@@ -146,7 +201,6 @@ def test_too_few_anatomies_make_no_regression(tmp_path):
 def test_held_out_anatomies_compare_predicted_trained_and_baseline_maps_on_their_own_traces(dataset, fitted, tmp_path):
     """A held-out anatomy with real oracle traces (the multielement oracle, in-process) and maps
     trained on them: its C is reproduced from the dataset, and the N record's maps do worse."""
-    import dataclasses
     import shutil
 
     from lvenv import archive
@@ -188,8 +242,6 @@ def test_anatomy_figures_are_drawn_from_the_regression(fitted, tmp_path):
 
 
 def test_a_prediction_outside_a_parameters_range_is_clipped_with_a_warning(fitted):
-    import dataclasses
-
     from lvenv.params import LOParams
 
     ranges = {f.name: f.metadata["range"] for f in dataclasses.fields(LOParams)}
@@ -208,8 +260,6 @@ def test_a_patient_imaged_at_end_diastole_is_unloaded_and_gets_its_anatomys_maps
     """`lvenv fit PATIENT.json`'s record path: an imaged geometry is unloaded (the paper's rule or
     the passive-curve search), the maps come from the regression the environment names, the
     record says what was done and reads back without unloading twice."""
-    import dataclasses
-
     from lvenv import presets
     from lvenv.anatomy import ARTEFACT_ENV, inflate, map_draws
     from lvenv.coupling import passive_volume
@@ -275,3 +325,22 @@ def test_refits_at_map_draws_carry_the_maps_uncertainty_into_the_fitted_paramete
     assert summary["Sa"]["sd"] > 0 and len(set(spread.parameters["Sa"])) == 3
     with pytest.raises(InputError, match="do not come from the anatomy regression"):
         refit(builtin("normal"), first.parameters, 3)
+
+
+def test_a_multi_element_patient_record_takes_its_maps_and_onsets_from_its_models_regression():
+    """A 3-cell record with ``"lo": "regression"`` gets the maps and the cells' onsets of the
+    3-cell heart's shipped regression, not the single cell's maps; a record whose cells are no
+    named model is refused, naming them."""
+    from lvenv.patients import Patient, builtin
+
+    geometry = Geometry(36.0, 9.0, 52.0, 10.0, 0.70, -60.0)
+    cells = {"kind": "series", "n_elements": 3, "spread": [1.0, 1.0]}
+    record = {**builtin("normal").to_dict(), "geometry": dataclasses.asdict(geometry), "elements": cells, "lo": "regression"}
+    patient = Patient.from_dict(record)
+    predicted = anatomy.from_geometry(geometry, model="series3")
+    assert patient.heart.lo == predicted.lo != anatomy.from_geometry(geometry).lo
+    assert patient.heart.elements == predicted.elements and len(set(predicted.elements.onsets)) == 3
+    assert patient.anatomy["maps"]["model"] == "series3" and Patient.from_json(patient.to_json()) == patient
+    with pytest.raises(InputError, match=r"elements \('series', 4, \(1.0, 1.0\)\) are no LO heart model"):
+        Patient.from_dict({**record, "elements": {**cells, "n_elements": 4}})
+
