@@ -41,8 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from lvenv import archive
-from lvenv import presets
+from lvenv import archive, presets
 from lvenv.anatomy import INPUTS, LO_OUTPUTS, Regression, artefact, kernel, log_normal, onset_outputs
 from lvenv.params import Arrangement, LOParams
 from lvenv.validation import InputError, integer
