@@ -341,6 +341,10 @@ def test_a_multi_element_patient_record_takes_its_maps_and_onsets_from_its_model
     assert patient.heart.lo == predicted.lo != anatomy.from_geometry(geometry).lo
     assert patient.heart.elements == predicted.elements and len(set(predicted.elements.onsets)) == 3
     assert patient.anatomy["maps"]["model"] == "series3" and Patient.from_json(patient.to_json()) == patient
+    # the maps' uncertainty is the 3-cell regression's: draws scatter around its maps, not the single cell's
+    gamma = np.array([d.gamma for d in anatomy.map_draws(geometry, 200, model="series3")])
+    sd = predicted.provenance["sd"]["gamma"]
+    assert abs(np.median(gamma) - predicted.lo.gamma) < sd / 2 < abs(np.median(gamma) - anatomy.from_geometry(geometry).lo.gamma)
     with pytest.raises(InputError, match=r"elements \('series', 4, \(1.0, 1.0\)\) are no LO heart model"):
         Patient.from_dict({**record, "elements": {**cells, "n_elements": 4}})
 
