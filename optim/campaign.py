@@ -350,19 +350,23 @@ def _format(value: Any) -> str:
     return str(value)
 
 
-def _write_index(directory: pathlib.Path, rows: Sequence[Mapping[str, Any]]) -> None:
+def _write_csv(path: pathlib.Path, columns: Sequence[str], rows: Sequence[Mapping[str, Any]]) -> None:
+    """``rows`` under the header ``columns``, written atomically."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(COLUMNS)
-    for row in rows:
-        writer.writerow([_format(row.get(c)) for c in COLUMNS])
-    archive.write_text(directory / "anatomies.csv", buffer.getvalue())
+    writer.writerow(columns)
+    writer.writerows([_format(row.get(c)) for c in columns] for row in rows)
+    archive.write_text(path, buffer.getvalue())
 
 
-def read_index(directory: str | os.PathLike[str] = DATASET) -> list[dict[str, Any]]:
-    """The rows of ``anatomies.csv`` with numbers as floats (empty cells: None); a
-    :class:`CampaignError` naming the file, row and column if it is malformed."""
-    path = pathlib.Path(directory) / "anatomies.csv"
+def _write_index(directory: pathlib.Path, rows: Sequence[Mapping[str, Any]]) -> None:
+    _write_csv(directory / "anatomies.csv", COLUMNS, rows)
+
+
+def _read_csv(path: pathlib.Path, columns: Sequence[str], text: frozenset[str]) -> list[dict[str, Any]]:
+    """The rows of the CSV file ``path``, whose header must be ``columns``: the ``text``
+    columns as strings, the others as floats (empty cells: None); a :class:`CampaignError`
+    naming the file, line and column otherwise."""
     try:
         with path.open(newline="", encoding="utf-8") as handle:
             reader = csv.DictReader(handle)
@@ -372,14 +376,13 @@ def read_index(directory: str | os.PathLike[str] = DATASET) -> list[dict[str, An
         raise CampaignError(f"{str(path)!r} does not exist") from None
     except (OSError, UnicodeDecodeError, csv.Error) as err:
         raise CampaignError(f"{str(path)!r} cannot be read ({type(err).__name__}: {err})") from None
-    if header != COLUMNS:
-        missing = [c for c in COLUMNS if c not in header]
-        raise CampaignError(f"{str(path)!r} has the wrong columns (missing {missing}, extra {[c for c in header if c not in COLUMNS]})")
-    text = {"id", "split", "key", "status", "reason", "oracle_code", "finished"}
+    if header != tuple(columns):
+        missing = [c for c in columns if c not in header]
+        raise CampaignError(f"{str(path)!r} has the wrong columns (missing {missing}, extra {[c for c in header if c not in columns]})")
     rows = []
     for line, record in enumerate(raw, start=2):
         row: dict[str, Any] = {}
-        for column in COLUMNS:
+        for column in columns:
             cell = record[column]
             if column in text:
                 row[column] = cell
@@ -390,9 +393,18 @@ def read_index(directory: str | os.PathLike[str] = DATASET) -> list[dict[str, An
                     row[column] = float(cell)
                 except ValueError:
                     raise CampaignError(f"{str(path)!r} line {line}: column {column} = {cell!r} is not a number") from None
+        rows.append(row)
+    return rows
+
+
+def read_index(directory: str | os.PathLike[str] = DATASET) -> list[dict[str, Any]]:
+    """The rows of ``anatomies.csv`` with numbers as floats (empty cells: None); a
+    :class:`CampaignError` naming the file, row and column if it is malformed."""
+    path = pathlib.Path(directory) / "anatomies.csv"
+    rows = _read_csv(path, COLUMNS, frozenset({"id", "split", "key", "status", "reason", "oracle_code", "finished"}))
+    for line, row in enumerate(rows, start=2):
         if row["status"] not in STATUSES:
             raise CampaignError(f"{str(path)!r} line {line}: status = {row['status']!r} is not one of {list(STATUSES)}")
-        rows.append(row)
     return rows
 
 
@@ -518,30 +530,8 @@ def model_table_path(directory: str | os.PathLike[str], model: str) -> pathlib.P
 def read_model_table(directory: str | os.PathLike[str], model: str) -> list[dict[str, Any]]:
     """The rows of ``model``'s table, numbers as floats (no table yet: none); a
     :class:`CampaignError` naming the file, line and column if it is malformed."""
-    path, columns = model_table_path(directory, model), model_columns(model)
-    if not path.exists():
-        return []
-    try:
-        with path.open(newline="", encoding="utf-8") as handle:
-            reader = csv.DictReader(handle)
-            header, raw = tuple(reader.fieldnames or ()), list(reader)
-    except (OSError, UnicodeDecodeError, csv.Error) as err:
-        raise CampaignError(f"{str(path)!r} cannot be read ({type(err).__name__}: {err})") from None
-    if header != columns:
-        raise CampaignError(f"{str(path)!r} has the columns {list(header)}; a {model} table has {list(columns)}")
-    rows = []
-    for line, record in enumerate(raw, start=2):
-        row: dict[str, Any] = {}
-        for column in columns:
-            if column in ("id", "split", "finished"):
-                row[column] = record[column]
-                continue
-            try:
-                row[column] = float(record[column])
-            except ValueError:
-                raise CampaignError(f"{str(path)!r} line {line}: column {column} = {record[column]!r} is not a number") from None
-        rows.append(row)
-    return rows
+    path = model_table_path(directory, model)
+    return _read_csv(path, model_columns(model), frozenset({"id", "split", "finished"})) if path.exists() else []
 
 
 def single_record(directory: str | os.PathLike[str], row: Mapping[str, Any], data: congruency.OracleData) -> TrainedLO:
@@ -558,7 +548,8 @@ def train_model_table(directory: str | os.PathLike[str] = DATASET, model: str = 
     anatomy of the dataset, from its traces (no FE run): its cells' onsets from the anatomy's
     wall, {μ1, μ2, γ, delay} from its single-cell maps (`optim.congruency.train_model`, MADS
     ``budget``, the LO beats at ``steps_per_beat``). Each finished anatomy is written at once
-    (the whole table, atomically), so an interrupted run resumes where it stopped; ``limit``: at
+    (the whole table, atomically), so an interrupted run resumes where it stopped, and an error
+    names the anatomy it stopped at; ``limit``: at
     most this many anatomies this call. ``progress(row, done, total)`` is called with each new
     row and the counts of this call. Returns the whole table."""
     directory, columns = pathlib.Path(directory), model_columns(model)
@@ -569,19 +560,19 @@ def train_model_table(directory: str | os.PathLike[str] = DATASET, model: str = 
     pending = [r for r in read_index(directory) if r["status"] == "accepted" and r["id"] not in trained_ids][:limit]
     for done, index_row in enumerate(pending, start=1):
         t0 = time.perf_counter()
-        data = oracle_data(directory, index_row["id"])
-        trained = congruency.train_model(data, single_record(directory, index_row, data), model, budget=budget, steps_per_beat=steps_per_beat,
-                                         progress=False)
+        try:
+            data = oracle_data(directory, index_row["id"])
+            trained = congruency.train_model(data, single_record(directory, index_row, data), model, budget=budget, steps_per_beat=steps_per_beat,
+                                             progress=False)
+        except Exception as err:
+            err.add_note(f"while training {model} on anatomy {index_row['id']} of {str(directory)!r}; the {len(rows)} rows before it are kept")
+            raise
         rows.append({"id": index_row["id"], "split": index_row["split"], **dataclasses.asdict(trained.lo),
                      **{"C" if k == "C" else f"C_{k}": v for k, v in trained.congruency.items()},
                      **{f"onset_{k}": x for k, x in enumerate(trained.elements.onsets, start=1)}, "train_s": time.perf_counter() - t0,
                      "finished": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")})
-        buffer = io.StringIO()
-        writer = csv.writer(buffer, lineterminator="\n")
-        writer.writerow(columns)
-        writer.writerows([_format(r.get(c)) for c in columns] for r in rows)
         path.parent.mkdir(exist_ok=True)
-        archive.write_text(path, buffer.getvalue())
+        _write_csv(path, columns, rows)
         if progress is not None:
             progress(rows[-1], done, len(pending))
     return rows

@@ -188,7 +188,7 @@ def test_a_multi_element_models_regression_predicts_its_maps_and_its_cells_onset
     with pytest.raises(InputError, match=r"predicts its cells' onsets, and \['onset_3'\] are missing"):
         Regression.load(tmp_path / "bad.json")
     table.write_text("id,split,mu1\nA000,train,0.1\n")
-    with pytest.raises(campaign.CampaignError, match="series3.csv' has the columns"):
+    with pytest.raises(campaign.CampaignError, match=r"series3.csv' has the wrong columns \(missing \['mu2'"):
         regression.fit(dataset, restarts=0, model="series3")
 
 
