@@ -78,7 +78,8 @@ def run(
 
     Returns an :class:`~fe_oracle.result.OracleResult`; raises
     :class:`~fe_oracle.result.OracleDidNotConverge` if a step fails after all cuts. Results are
-    cached under ``cache_dir`` (``use_cache=False`` neither reads nor writes the cache).
+    cached under ``cache_dir``, and the runs the package ships are read too
+    (:func:`fe_oracle.cache.lookup`; ``use_cache=False`` neither reads nor writes either).
     ``progress``: a tqdm bar over simulated time (passive: over the load); ``None`` shows it only
     on a terminal, and only on MPI rank 0.
 
@@ -150,7 +151,7 @@ def _cached(inputs: dict, compute, cache_dir, use_cache: bool, *, mesh_size: flo
     metadata every backend shares added, stored in the cache unless ``use_cache`` is False."""
     directory = cache.default_dir() if cache_dir is None else pathlib.Path(cache_dir)
     k = cache.key(inputs)
-    if use_cache and (hit := cache.load(directory, k)) is not None:
+    if use_cache and (hit := cache.lookup(directory, k)) is not None:
         return hit
     t0 = time.perf_counter()
     traces, meta, log = compute()

@@ -13,6 +13,13 @@ atomically in the safe format of :mod:`lvenv.archive`, so a killed run leaves ei
 complete entry or none, and loading an entry never unpickles. A damaged entry is reported
 (:class:`lvenv.archive.ArchiveError`, with its path) rather than silently recomputed.
 Default directory: ``$LVENV_FE_CACHE`` or ``~/.cache/lvenv/fe_oracle``.
+
+**Shipped runs.** The package ships some entries (:data:`SHIPPED`, written by
+``scripts/ship_fe_runs.py``: the built-in hearts' training runs and unseen scenarios, the
+runs the candidate studies compare against), without their solver logs. :func:`lookup` reads
+a key from the cache directory, else from there, so a fresh machine does not run them again.
+Their keys hold the code version like any other: after a change to the oracle's code they are
+never read, and the script writes them anew.
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ from lvenv import archive
 
 from fe_oracle.result import OracleResult
 
-__all__ = ["default_dir", "code_text", "code_version", "key", "load", "store"]
+__all__ = ["SHIPPED", "default_dir", "code_text", "code_version", "key", "load", "lookup", "store"]
 
 #: Per backend, the source files its results depend on (package-relative paths).
 CODE = {
@@ -43,6 +50,10 @@ CODE = {
                      "lvenv/circulation.py", "lvenv/coupling.py", "lvenv/events.py", "lvenv/geometry.py",
                      "lvenv/integrator.py", "lvenv/multielement.py"),
 }
+
+
+#: Entries shipped with the package (module docstring), read-only.
+SHIPPED = pathlib.Path(__file__).resolve().parent / "data" / "runs"
 
 
 def default_dir() -> pathlib.Path:
@@ -106,6 +117,12 @@ def load(directory, k: str) -> OracleResult | None:
     arrays, extra = archive.load(path, "FE oracle cache entry")
     traces = {name[len("trace_"):]: value for name, value in arrays.items() if name.startswith("trace_")}
     return OracleResult(traces, extra["metadata"], extra["log"], from_cache=True)
+
+
+def lookup(directory, k: str) -> OracleResult | None:
+    """The result for key ``k`` from the cache ``directory``, else from :data:`SHIPPED`, or None."""
+    hit = load(directory, k)
+    return hit if hit is not None else load(SHIPPED, k)
 
 
 def store(directory, k: str, result: OracleResult) -> pathlib.Path:

@@ -1,0 +1,58 @@
+"""Ship the built-in hearts' FE runs with the package, so that a fresh machine compares LO hearts against them without an FE run; JSON out.
+
+    python scripts/ship_fe_runs.py [--hearts normal heart_failure] [--dt 0.005]
+
+For each built-in heart (N, HF, `scripts.train_presets.HEARTS`): the runs its training takes
+(`optim.congruency.oracle_data`: the passive curve and the beats ①②③, h = 6 mm) and its
+unseen scenarios (`optim.studies.UNSEEN`, one beat each under condition ②), the runs
+`scripts/candidate_study.py hearts`, `scripts/generalisation.py` and `scripts/train_presets.py`
+compare against. Each is read from the oracle's cache or run (about a minute per beat on one
+core, more while other work runs), then written to `fe_oracle.cache.SHIPPED` under its key,
+without its solver log. `fe_oracle.run` reads them from there when the cache lacks them
+(`fe_oracle.cache.lookup`). Their keys hold the oracle's code version, so after a change to the
+oracle's code they are not read: run this again (the stale files are removed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+import fe_oracle  # noqa: E402
+from fe_oracle import cache  # noqa: E402
+from lvenv import presets  # noqa: E402
+from optim import congruency  # noqa: E402
+from optim.studies import UNSEEN, scenario  # noqa: E402
+from scripts.train_presets import HEARTS  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS))
+    parser.add_argument("--dt", type=float, default=None, help="the oracle's time step (s; default its own, 5 ms)")
+    args = parser.parse_args()
+    oracle = {} if args.dt is None else {"dt": args.dt}
+    runs = {}
+    for name in args.hearts:
+        heart = getattr(presets, name)()
+        data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
+        results = {f"training {case}": r for case, r in (("passive", data.passive), *((str(k), b) for k, b in data.beats.items()))}
+        for label, change in UNSEEN.items():
+            h = scenario(heart, change)
+            results[label] = fe_oracle.run(h.geometry, h.circulation, cell=h.cell, progress=False, **oracle)
+        for label, result in results.items():
+            key = result.metadata["key"]
+            cache.store(cache.SHIPPED, key, fe_oracle.OracleResult(result.traces, result.metadata, []))
+            runs[key] = {"heart": name, "run": label, "code_version": result.metadata["code_version"]}
+    stale = [path for path in cache.SHIPPED.glob("*.npz") if path.stem not in runs and cache.load(cache.SHIPPED, path.stem).metadata["code_version"] != cache.code_version()]
+    for path in stale:
+        path.unlink()
+    print(json.dumps({"shipped": runs, "removed_stale": [p.name for p in stale], "directory": str(cache.SHIPPED)}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
