@@ -46,8 +46,9 @@ largest pointwise pressure error per scenario, beside the issue's goals (trainin
 unseen C ≤ 5 % and pressure error ≤ 10 %). Writes ``--out``/candidates_hearts[_dt<ms>].md and
 .png (FE solid, the single cell dashed, each other candidate dotted).
 
-Each candidate costs about a minute per anatomy on one core, and the hearts mode about 12 FE
-beats per heart when the cache is cold.
+Each candidate costs about a minute per anatomy on one core. The hearts mode's FE runs at the
+oracle's own time step ship with the package (`scripts/ship_fe_runs.py`); another ``--dt``
+costs 4 FE beats per heart (12 with the unseen scenarios) when the cache is cold.
 """
 
 from __future__ import annotations
