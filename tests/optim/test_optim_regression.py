@@ -1,6 +1,7 @@
 """The anatomy regression: cross-validation on a known smooth map, the artefact's round trip to
 `lvenv.anatomy.from_geometry` (predictions equal scikit-learn's own), the warning outside the box
-and clear errors for malformed artefacts."""
+and clear errors for malformed artefacts; a multi-element heart's regression with its cells'
+onsets, and the records that take it."""
 
 import csv
 import dataclasses
@@ -151,6 +152,8 @@ def test_a_multi_element_models_regression_predicts_its_maps_and_its_cells_onset
     it is refused where the single cell's is asked for, and a table of other columns is refused."""
     import shutil
 
+    from lvenv.cli import main
+
     dataset = shutil.copytree(dataset, tmp_path / "dataset")
     columns = campaign.model_columns("series3")
     rows = [r for r in campaign.read_index(dataset) if r["id"] != "A005"]
@@ -163,8 +166,6 @@ def test_a_multi_element_models_regression_predicts_its_maps_and_its_cells_onset
             g = {name: r[col] for col, name in GEOMETRY_COLUMNS.items()}
             values = {**r, "gamma": 0.5 * r["gamma"], "C_1": r["C"], "C_2": r["C"], "C_3": r["C"], **dict(zip(("onset_1", "onset_2", "onset_3"), _onsets(g))), "train_s": 1.0, "finished": "x"}
             writer.writerow([values[c] for c in columns])
-    from lvenv.cli import main
-
     path = tmp_path / "series3.json"
     assert main(["campaign", "regress", str(dataset), "--model", "series3", "--out", str(path), "--restarts", "0", "--folds", "3", "--json"]) == 0
     fitted3 = Regression.load(path)
