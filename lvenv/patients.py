@@ -202,10 +202,10 @@ class Patient:
         if record.get("lo") == "regression":
             from lvenv.anatomy import from_geometry, maps_note
 
-            model = presets.model_of(parts.get("elements"))
-            if model is None:
-                raise InputError(f"patient.lo = 'regression': the record's elements {parts['elements'].model_key()} are no LO heart model of "
-                                 f"{list(presets.LO_MODELS)}, and only those have an anatomy regression")
+            try:
+                model = presets.model_of(parts.get("elements"))
+            except InputError as err:
+                raise InputError(f"patient.lo = 'regression': the record's {err}") from None
             trained = from_geometry(parts["geometry"], model=model)
             parts["lo"], parts["elements"], anatomy["maps"] = trained.lo, trained.elements, maps_note(trained)
         return cls(

@@ -66,13 +66,17 @@ def check_model(model: str) -> str:
     return choice("model", model, tuple(LO_MODELS))
 
 
-def model_of(elements: Arrangement | None) -> str | None:
+def model_of(elements: Arrangement | None) -> str:
     """The name in :data:`LO_MODELS` of the LO heart model ``elements`` (``Heart.elements``)
-    is, whatever its onsets: "single" for None; None if no named model has its kind, cells and
-    spread."""
+    is, whatever its onsets: "single" for None. Cells of no named model's kind, number and
+    spread raise :class:`~lvenv.validation.InputError` naming them: only the named models
+    have trained maps and anatomy regressions."""
     if elements is None:
         return "single"
-    return next((name for name, spec in LO_MODELS.items() if spec is not None and spec == elements.model_key()), None)
+    name = next((name for name, spec in LO_MODELS.items() if spec is not None and spec == elements.model_key()), None)
+    if name is None:
+        raise InputError(f"elements {elements.model_key()} are no LO heart model of {list(LO_MODELS)}; only those have trained maps and an anatomy regression")
+    return name
 
 
 def onset_quantiles(cells: int) -> tuple[float, ...]:

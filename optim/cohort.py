@@ -360,10 +360,7 @@ def read_reports(path: str | os.PathLike[str], base: Heart | None = None, maps: 
         regression = None
         if maps == "regression" and set(columns) & set(GEOMETRY_COLUMNS):
             try:
-                model = presets.model_of(base.elements)
-                if model is None:
-                    raise InputError(f"the base heart's cells {base.elements.model_key()} are no model of {list(presets.LO_MODELS)}, and only those have one")
-                regression = load_regression(model=model)
+                regression = load_regression(model=presets.model_of(base.elements))
             except InputError as err:
                 raise CohortError(f"{str(path)!r} has geometry columns, whose maps come from the anatomy regression: {err}; "
                                   "or fit them with the base heart's maps (maps = 'base', `lvenv cohort --maps base`)") from None

@@ -43,7 +43,7 @@ import numpy as np
 
 from lvenv import archive, presets
 from lvenv.anatomy import INPUTS, LO_OUTPUTS, Regression, artefact, kernel, log_normal, onset_outputs
-from lvenv.params import Arrangement, LOParams
+from lvenv.params import LOParams
 from lvenv.validation import InputError, integer
 from optim import campaign
 from optim.cohort import GEOMETRY_COLUMNS
@@ -227,7 +227,7 @@ def held_out(regression: Regression, directory: str | os.PathLike[str] = campaig
         if model == "single":
             c = congruency.overall(congruency.run_congruency(data, [trained, predicted.lo, baseline], steps_per_beat))
         else:
-            own = Arrangement(*presets.LO_MODELS[model], onsets=tuple(row[name] for name in onset_outputs(model)))
+            own = regression.arrangement({name: [row[name]] for name in onset_outputs(model)})
             c = [congruency.overall(congruency.run_congruency(data, [lo], steps_per_beat, arrangement)[0])
                  for lo, arrangement in ((trained, own), (predicted.lo, predicted.elements), (baseline, n_record.elements))]
         out.append({"id": row["id"], "C_trained": float(c[0]), "C_predicted": float(c[1]), "C_baseline": float(c[2]),
