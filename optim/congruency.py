@@ -16,7 +16,8 @@ all from the documented initial state, then
    on the residuals of C² (a sum of squares). Each optimiser batch of candidates × the three
    conditions is one batched `lvenv.simulate` call (one beat at `steps_per_beat`); the LO traces
    are interpolated linearly onto the oracle's time samples and the integrals taken by the
-   trapezoidal rule there.
+   trapezoidal rule there. `fit_maps` is this fit on any beats (`fit_active`: the training beats;
+   `optim.studies.retune`: one unseen scenario's beat).
 3. **Activation delay** (ours, DESIGN §3). If C stays at or above `TARGET_C` (1 %), the active
    fit is repeated with the LO activation delay d (`lvenv.coupling.calcium`) trained alongside
    {μ1, μ2, γ}, and kept if it lowers C; both C are reported.
@@ -47,7 +48,7 @@ import functools
 import importlib.metadata
 import pathlib
 import subprocess
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -69,7 +70,7 @@ from optim.protocol import Bounds, padded, run
 
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
-    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active",
+    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active", "fit_maps",
     "train", "train_on", "check_fidelity",
 ]
 
@@ -164,17 +165,21 @@ def lo_beats(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 10
     return is_usable(status), t, v, p
 
 
+def _beat_c(oracles: Sequence[Mapping[str, np.ndarray]], usable: np.ndarray, t: np.ndarray, v: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """C per (candidate, beat) of candidate-major LO beats against ``oracles``; NaN where unusable."""
+    n = len(oracles)
+    out = np.full((len(usable) // n, n), np.nan)
+    for j, oracle in enumerate(oracles):
+        rows = np.arange(j, len(usable), n)
+        out[:, j] = np.where(usable[rows], np.sqrt(congruency(oracle, t[rows[0]], v[rows], p[rows])), np.nan)
+    return out
+
+
 def run_congruency(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
                    arrangement: Arrangement | None = None) -> np.ndarray:
     """C per (candidate, condition) of LO candidates against ``data``, shape (len(los), 3),
     one batched simulation (:func:`lo_beats`); NaN where the LO beat failed."""
-    usable, t, v, p = lo_beats(data, los, steps_per_beat, arrangement)
-    out = np.full((len(los), len(CONDITIONS)), np.nan)
-    for j, k in enumerate(CONDITIONS):
-        rows = np.arange(j, len(usable), len(CONDITIONS))
-        bracket = congruency(data.beats[k].traces, t[rows[0]], v[rows], p[rows])
-        out[:, j] = np.where(usable[rows], np.sqrt(bracket), np.nan)
-    return out
+    return _beat_c([data.beats[k].traces for k in CONDITIONS], *lo_beats(data, los, steps_per_beat, arrangement))
 
 
 def overall(c_runs: np.ndarray) -> np.ndarray:
@@ -208,12 +213,25 @@ def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:
 def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16,
                seed: int = 0, steps_per_beat: int = 1000, progress: bool | None = None,
                arrangement: Arrangement | None = None, bounds: Mapping[str, tuple[float, float]] | None = None) -> tuple[LOParams, np.ndarray]:
-    """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay} and the parameters ``bounds`` boxes) by
-    OrthoMADS with kriging search, from ``start`` (clipped into the boxes); returns the best LO
-    parameters and C per training beat. ``arrangement``: train a multi-element LO heart
-    (:func:`lo_beats`). ``bounds``: search boxes of further LO parameters, or other boxes for
-    these, name → (lower, upper) in the units of :class:`~lvenv.params.LOParams`
-    (default :data:`ACTIVE_BOUNDS`).
+    """Minimise C² over ``names`` (⊆ {μ1, μ2, γ, delay} and the parameters ``bounds`` boxes) on the
+    training beats (:func:`fit_maps`), from ``start``; returns the best LO parameters and C per
+    training beat. ``arrangement``: train a multi-element LO heart (:func:`lo_beats`). ``bounds``:
+    search boxes of further LO parameters, or other boxes for these, name → (lower, upper) in the
+    units of :class:`~lvenv.params.LOParams` (default :data:`ACTIVE_BOUNDS`)."""
+    return fit_maps(lambda lo: training_hearts(data.geometry, data.cell, [lo], arrangement), [data.beats[k].traces for k in CONDITIONS],
+                    start, names, budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat, progress=progress, bounds=bounds)
+
+
+def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Mapping[str, np.ndarray]], start: LOParams,
+             names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16, seed: int = 0, steps_per_beat: int = 1000,
+             progress: bool | None = None, bounds: Mapping[str, tuple[float, float]] | None = None) -> tuple[LOParams, np.ndarray]:
+    """Minimise C² = mean over beats of C_i² over the LO parameters ``names`` by OrthoMADS with
+    kriging search, from ``start`` (clipped into the boxes), then polish by bounded least squares
+    on the residuals of C²; returns the best LO parameters and C per beat. ``hearts(lo)``: the LO
+    hearts of one candidate, one per beat of ``oracles`` (traces ``t`` s, ``V`` ml, ``P_lv`` kPa);
+    each batch of candidates is one `lvenv.simulate` call (:func:`one_beat`). ``bounds``: as in
+    :func:`fit_active`. :func:`fit_active` fits the training beats; `optim.studies.retune` one
+    unseen scenario's beat.
 
     C² can have several local minima (seen against the series multi-element model). When a MADS
     run converges (poll size below its minimum) before the budget is spent, MADS restarts from a
@@ -228,8 +246,12 @@ def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_
     def candidates(x: np.ndarray) -> list[LOParams]:
         return [dataclasses.replace(start, **dict(zip(names, map(float, row)))) for row in x]
 
+    def beats(los: Sequence[LOParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        status, t, v, p = one_beat([h for lo in los for h in hearts(lo)], steps_per_beat)
+        return is_usable(status), t, v, p
+
     def objective(x: np.ndarray) -> np.ndarray:
-        c2 = overall(run_congruency(data, candidates(x), steps_per_beat, arrangement)) ** 2
+        c2 = overall(_beat_c(oracles, *beats(candidates(x)))) ** 2
         return np.log10(c2 + 1e-14)  # the kriging search models log C² far better than C²
 
     rng = np.random.default_rng(seed)
@@ -241,12 +263,12 @@ def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_
             best_x, best_f = res.x_best, res.merit_best
         left -= res.evaluations
         x0 = lower + rng.random(len(names)) * (upper - lower)
-    lo = _polish(data, candidates(best_x[None])[0], names, lower, upper, steps_per_beat, arrangement)
-    return lo, run_congruency(data, [lo], steps_per_beat, arrangement)[0]
+    lo = _polish(beats, oracles, candidates(best_x[None])[0], names, lower, upper)
+    return lo, _beat_c(oracles, *beats([lo]))[0]
 
 
-def _polish(data: OracleData, lo: LOParams, names: tuple[str, ...], lower: np.ndarray, upper: np.ndarray, steps_per_beat: int,
-            arrangement: Arrangement | None) -> LOParams:
+def _polish(beats: Callable, oracles: Sequence[Mapping[str, np.ndarray]], lo: LOParams, names: tuple[str, ...], lower: np.ndarray,
+            upper: np.ndarray) -> LOParams:
     """Refine MADS's best point by bounded least squares on the residuals of C² (trust-region
     reflective, `scipy.optimize.least_squares`); kept only if C² falls."""
 
@@ -254,11 +276,11 @@ def _polish(data: OracleData, lo: LOParams, names: tuple[str, ...], lower: np.nd
         return dataclasses.replace(lo, **dict(zip(names, map(float, x))))
 
     def fun(x) -> np.ndarray:
-        usable, t, v, p = lo_beats(data, [with_values(x)], steps_per_beat, arrangement)
+        usable, t, v, p = beats([with_values(x)])
         if not np.all(usable):
-            return np.full(sum(2 * len(data.beats[k].traces["t"]) for k in CONDITIONS), 1e3)
-        parts = [residuals(data.beats[k].traces, t[j], v[j], p[j])[0] for j, k in enumerate(CONDITIONS)]
-        return np.concatenate(parts) / np.sqrt(len(CONDITIONS))
+            return np.full(sum(2 * len(o["t"]) for o in oracles), 1e3)
+        parts = [residuals(o, t[j], v[j], p[j])[0] for j, o in enumerate(oracles)]
+        return np.concatenate(parts) / np.sqrt(len(oracles))
 
     x0 = np.clip([getattr(lo, n) for n in names], lower, upper)
     fit = least_squares(fun, x0, bounds=(lower, upper), x_scale=upper - lower, diff_step=1e-6, max_nfev=50 * len(names))

@@ -17,7 +17,8 @@ fidelity           ``out/diagnosis/diagnosis.md``;                        ``pyth
                    ``out/diagnosis/wall.{md,png}``;                       ``python scripts/wall_diagnosis.py``;
                    ``out/diagnosis/candidates_dataset.md``,               ``python scripts/candidate_study.py dataset``,
                    ``candidates_hearts.{md,png}``,                        ``python scripts/candidate_study.py hearts``,
-                   ``candidates_hearts_dt2.5ms.md``                       ``… hearts --dt 0.0025 --no-unseen``
+                   ``candidates_hearts_dt2.5ms.md``,                      ``… hearts --dt 0.0025 --no-unseen``,
+                   ``candidates_retune.md``                               ``python scripts/candidate_study.py retune``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
                    ``out/identify/posterior_patients.json`` and           ``python scripts/posterior_patients.py``;
                    ``posterior_pairs.png``;
@@ -105,6 +106,7 @@ FIDELITY_PARTS = (
      "candidates_hearts.png"),
     ("The same, trained on the oracle at dt = 2.5 ms", "candidates_hearts_dt2.5ms.md",
      "python scripts/candidate_study.py hearts --dt 0.0025 --no-unseen", None),
+    ("Maps frozen against maps refitted in each unseen scenario", "candidates_retune.md", "python scripts/candidate_study.py retune", None),
 )
 
 
