@@ -29,9 +29,11 @@ import numpy as np
 import fe_oracle
 from lvenv import presets
 from lvenv.params import CellParams, Heart, LOParams
-from optim.congruency import ACTIVE_NAMES, congruency, fit_maps, one_beat, overall, train
+from lvenv.validation import InputError
+from optim.congruency import ACTIVE_BOUNDS, ACTIVE_NAMES, congruency, fit_maps, one_beat, train
+from optim.diagnosis import decompose
 
-__all__ = ["UNSEEN", "SWEEPS", "scenario", "generalisation", "retune", "multielement_table"]
+__all__ = ["UNSEEN", "INTERIOR", "SWEEPS", "scenario", "generalisation", "retune", "map_transfer", "multielement_table"]
 
 #: The ends of the unseen scenarios: parameter changes from the training values (τ2 as a factor).
 UNSEEN: dict[str, dict[str, float]] = {
@@ -39,6 +41,15 @@ UNSEEN: dict[str, dict[str, float]] = {
     "n0_0.5": {"n0": 0.5}, "n0_0.9": {"n0": 0.9},
     "nA_1": {"nA": 1.0}, "nA_10": {"nA": 10.0},
     "tau2_x2": {"tau2_factor": 2.0}, "R1_0.1": {"R1": 0.1},
+}
+
+#: A point inside each unseen scenario's axis, between the training value and the scenario's end
+#: (about halfway; Vmax's factor halfway on a log scale): scenario → (name, change).
+INTERIOR: dict[str, tuple[str, dict[str, float]]] = {
+    "vmax_x0.25": ("vmax_x0.5", {"vmax_factor": 0.5}), "vmax_x4": ("vmax_x2", {"vmax_factor": 2.0}),
+    "n0_0.5": ("n0_0.6", {"n0": 0.6}), "n0_0.9": ("n0_0.8", {"n0": 0.8}),
+    "nA_1": ("nA_3", {"nA": 3.0}), "nA_10": ("nA_7.5", {"nA": 7.5}),
+    "tau2_x2": ("tau2_x1.5", {"tau2_factor": 1.5}), "R1_0.1": ("R1_0.05", {"R1": 0.05}),
 }
 
 #: Table 4's sweeps, ten values each (τ2 as a factor of the training value).
@@ -91,7 +102,9 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
     """One row per scenario: its name, C with ``heart``'s maps frozen (as :func:`generalisation`),
     and C with the LO parameters ``names`` refitted to that scenario's own oracle beat by
     :func:`optim.congruency.fit_maps` (MADS ``budget`` evaluations from the frozen maps, then
-    least squares), with the refitted values. The heart keeps its model (``Heart.elements``)."""
+    least squares), with the refitted values, and where each miss sits (``where_frozen``,
+    ``where_retuned``: the share of C² per window of the beat and the share a pure time shift
+    removes, :func:`optim.diagnosis.decompose`). The heart keeps its model (``Heart.elements``)."""
     rows = []
     for name, change in scenarios.items():
         target = scenario(heart, change)
@@ -100,12 +113,66 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
         def hearts(lo: LOParams, change=change) -> list[Heart]:
             return [scenario(dataclasses.replace(heart, lo=lo), change)]
 
-        _, t, v, p = one_beat(hearts(heart.lo), steps_per_beat)
-        lo, refitted = fit_maps(hearts, [oracle.traces], heart.lo, names, budget=budget, steps_per_beat=steps_per_beat, progress=progress)
-        rows.append({"scenario": name, "change": dict(change), "C_frozen": _errors(oracle, t[0], v[0], p[0])["C"], "C_retuned": float(overall(refitted)),
+        lo, _ = fit_maps(hearts, [oracle.traces], heart.lo, names, budget=budget, steps_per_beat=steps_per_beat, progress=progress)
+        _, t, v, p = one_beat([*hearts(heart.lo), *hearts(lo)], steps_per_beat)
+        frozen, retuned = (decompose(oracle.traces, t[i], v[i], p[i]) for i in (0, 1))
+        rows.append({"scenario": name, "change": dict(change), "C_frozen": frozen["C"], "C_retuned": retuned["C"],
+                     "where_frozen": {k: frozen[k] for k in ("share", "timing_share")}, "where_retuned": {k: retuned[k] for k in ("share", "timing_share")},
                      "retuned": {n: float(getattr(lo, n)) for n in names}, "frozen": {n: float(getattr(heart.lo, n)) for n in names},
                      "oracle_key": oracle.metadata["key"]})
     return rows
+
+
+def _position(heart: Heart, change: Mapping[str, float]) -> float:
+    """How far ``change`` (one parameter) moves ``heart`` from its training condition ② along the
+    scenario's axis: the parameter's change (Vmax's factor on a log scale, as :data:`SWEEPS`)."""
+    ((name, value),) = change.items()
+    if name == "tau2_factor":
+        return value - 1.0
+    trained = presets.training_condition(2, heart)
+    start = getattr(trained.cell, name) if hasattr(trained.cell, name) else getattr(trained.circulation, name)
+    return float(np.log(value / start)) if name == "vmax_factor" else value - start
+
+
+def map_transfer(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
+                 names: Sequence[str] = (*ACTIVE_NAMES, "delay"), budget: int = 480, steps_per_beat: int = 1000,
+                 progress: bool | None = None, **oracle_options: Any) -> list[dict[str, Any]]:
+    """Do the maps follow the cell smoothly enough to be regressed on it? :func:`retune` at the
+    training beat (condition ②), at each scenario's end and at its :data:`INTERIOR` point; then,
+    along each scenario's axis (:func:`_position`), the maps at the end extrapolated linearly from
+    the training and interior points' retuned maps, and the maps at the interior point
+    interpolated from the training and end points' maps. One row per scenario: its
+    :func:`retune` row (the end) with ``C_extrapolated``, and ``interior``: the interior point's
+    name, ``C_frozen``, ``C_interpolated`` and ``C_retuned``. Maps out of
+    :data:`~optim.congruency.ACTIVE_BOUNDS` are clipped into them."""
+    unknown = sorted(set(scenarios) - set(INTERIOR))
+    if unknown:
+        raise InputError(f"scenarios {unknown} have no point inside their axis; map_transfer takes those of INTERIOR: {sorted(INTERIOR)}")
+    interior = {INTERIOR[s][0]: INTERIOR[s][1] for s in scenarios}
+    rows = {r["scenario"]: r for r in retune(heart, {"training": {}, **scenarios, **interior}, backend, names=names, budget=budget,
+                                                    steps_per_beat=steps_per_beat, progress=progress, **oracle_options)}
+    lower, upper = (np.array([ACTIVE_BOUNDS[n][i] for n in names]) for i in (0, 1))
+
+    def maps(name: str) -> np.ndarray:
+        return np.array([rows[name]["retuned"][n] for n in names])
+
+    def beat_c(change: Mapping[str, float], values: np.ndarray) -> float:
+        lo = dataclasses.replace(heart.lo, **dict(zip(names, map(float, np.clip(values, lower, upper)))))
+        target = scenario(dataclasses.replace(heart, lo=lo), change)
+        oracle = fe_oracle.run(target.geometry, target.circulation, backend, cell=target.cell, progress=progress, **oracle_options)
+        _, t, v, p = one_beat([target], steps_per_beat)
+        return _errors(oracle, t[0], v[0], p[0])["C"]
+
+    out = []
+    for name, change in scenarios.items():
+        inner, inner_change = INTERIOR[name]
+        w = _position(heart, change) / _position(heart, inner_change)
+        extrapolated = maps("training") + w * (maps(inner) - maps("training"))
+        interpolated = maps("training") + (maps(name) - maps("training")) / w
+        out.append({**rows[name], "C_extrapolated": beat_c(change, extrapolated),
+                    "interior": {"scenario": inner, "C_frozen": rows[inner]["C_frozen"], "C_retuned": rows[inner]["C_retuned"],
+                                 "C_interpolated": beat_c(inner_change, interpolated)}})
+    return out
 
 
 def multielement_table(geometry=presets.N_UNLOADED, arrangements: Iterable[str] = ("parallel", "series"),

@@ -51,7 +51,11 @@ unseen C ≤ 5 % and pressure error ≤ 10 %). Writes ``--out``/candidates_heart
 scenario {μ1, μ2, γ, delay} refitted on that scenario's own FE beat (`optim.studies.retune`,
 MADS budget ``--budget``, then least squares): C with the maps frozen against C with the maps
 retuned. The retuned C is how close the candidate can come to the scenario's beat at all; the
-gap between the two is what the maps' not carrying over costs. Writes ``--out``/candidates_retune.md.
+gap between the two is what the maps' not carrying over costs. Then whether maps regressed on
+the cell would carry over (`optim.studies.map_transfer`): the maps refitted at the training
+beat and at a point inside each scenario's axis (`optim.studies.INTERIOR`, 8 more FE beats per
+heart, shipped), carried linearly to the scenario's end, and back. Writes
+``--out``/candidates_retune.md.
 
 Each candidate costs about a minute per anatomy on one core. The hearts mode's FE runs at the
 oracle's own time step ship with the package (`scripts/ship_fe_runs.py`); another ``--dt``
@@ -77,7 +81,7 @@ from lvenv.params import Arrangement, Heart, LOParams  # noqa: E402
 from lvenv.plots import generalisation_figure  # noqa: E402
 from lvenv.trained import builtin  # noqa: E402
 from optim import campaign, congruency, diagnosis  # noqa: E402
-from optim.studies import UNSEEN, generalisation, retune  # noqa: E402
+from optim.studies import UNSEEN, generalisation, map_transfer  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 #: The multi-element candidates: name → (arrangement kind, cells).
@@ -233,9 +237,10 @@ def retune_mode(args, command: str) -> dict:
     for heart_name, heart, fits in trained_hearts(args, {}):
         for name, (lo, c, arr, seconds, factor) in fits.items():
             t0 = time.perf_counter()
-            rows = retune(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=TRAINED, budget=args.budget, progress=False)
+            rows = map_transfer(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=TRAINED, budget=args.budget, progress=False)
+            keep = ("C_frozen", "C_retuned", "C_extrapolated", "retuned", "where_frozen", "where_retuned", "interior")
             results.append({"heart": heart_name, "candidate": name, "training": _summary(lo, c, seconds, factor), "retune_seconds": time.perf_counter() - t0,
-                            "unseen": {r["scenario"]: {k: r[k] for k in ("C_frozen", "C_retuned", "retuned")} for r in rows}})
+                            "unseen": {r["scenario"]: {k: r[k] for k in keep} for r in rows}})
     lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = 5 ms), then in each "
              "unseen scenario C with its maps frozen → C with {μ1, μ2, γ, delay} refitted on that scenario's own FE beat "
              "(`optim.studies.retune`), both %. The second is how close the candidate comes to the beat at all; the gap is what "
@@ -251,6 +256,28 @@ def retune_mode(args, command: str) -> dict:
     for r in results:
         ratio = lambda s, n: r["unseen"][s]["retuned"][n] / r["training"][n]
         lines.append(f"| {r['heart']} | {r['candidate']} | " + " | ".join(f"{ratio(s, 'mu1'):.2f} / {ratio(s, 'mu2'):.2f}" for s in UNSEEN) + " |")
+    lines += ["", "Where the frozen maps miss: the window of the beat (`optim.diagnosis`) with the largest share of C², and the "
+              "share a pure time shift removes:", "",
+              "| heart | candidate | " + " | ".join(UNSEEN) + " |", "|---|---|" + "---|" * len(UNSEEN)]
+    for r in results:
+        def where(s: str) -> str:
+            w = r["unseen"][s]["where_frozen"]
+            top = max(w["share"], key=w["share"].get)
+            return f"{top} {100 * w['share'][top]:.0f} %, shift {max(0.0, 100 * w['timing_share']):.0f} %"
+        lines.append(f"| {r['heart']} | {r['candidate']} | " + " | ".join(where(s) for s in UNSEEN) + " |")
+    lines += ["", "Maps carried along each scenario's axis (`optim.studies.map_transfer`), as a regression of the maps on the cell "
+              "would carry them: at the scenario's end, C frozen / with the maps extrapolated linearly from those refitted at the "
+              "training beat and at the interior point / refitted; at the interior point, C frozen / with the maps interpolated "
+              "from those at the training beat and the end / refitted (%):", "",
+              "| heart | candidate | " + " | ".join(UNSEEN) + " | worst end: frozen / extrapolated / refitted |", "|---|---|" + "---|" * (len(UNSEEN) + 1)]
+    for r in results:
+        u = r["unseen"]
+        def carried(s: str) -> str:
+            inner = u[s]["interior"]
+            return (f"{100 * u[s]['C_frozen']:.1f} / {100 * u[s]['C_extrapolated']:.1f} / {100 * u[s]['C_retuned']:.1f}; "
+                    f"{inner['scenario']}: {100 * inner['C_frozen']:.1f} / {100 * inner['C_interpolated']:.1f} / {100 * inner['C_retuned']:.1f}")
+        worst = " / ".join(f"{100 * max(x[k] for x in u.values()):.1f}" for k in ("C_frozen", "C_extrapolated", "C_retuned"))
+        lines.append(f"| {r['heart']} | {r['candidate']} | " + " | ".join(carried(s) for s in UNSEEN) + f" | {worst} |")
     (args.out / "candidates_retune.md").write_text("\n".join(lines) + "\n")
     return {"results": results}
 

@@ -3,10 +3,10 @@
     python scripts/ship_fe_runs.py [--hearts normal heart_failure] [--dt 0.005]
 
 For each built-in heart (N, HF, `scripts.train_presets.HEARTS`): the runs its training takes
-(`optim.congruency.oracle_data`: the passive curve and the beats ①②③, h = 6 mm) and its
-unseen scenarios (`optim.studies.UNSEEN`, one beat each under condition ②), the runs
-`scripts/candidate_study.py hearts`, `scripts/generalisation.py` and `scripts/train_presets.py`
-compare against. Each is read from the oracle's cache or run (about a minute per beat on one
+(`optim.congruency.oracle_data`: the passive curve and the beats ①②③, h = 6 mm), its
+unseen scenarios (`optim.studies.UNSEEN`, one beat each under condition ②) and a point inside
+each scenario's axis (`optim.studies.INTERIOR`), the runs `scripts/candidate_study.py hearts` and
+`retune`, `scripts/generalisation.py` and `scripts/train_presets.py` compare against. Each is read from the oracle's cache or run (about a minute per beat on one
 core, more while other work runs), then written to `fe_oracle.cache.SHIPPED` under its key,
 without its solver log. `fe_oracle.run` reads them from there when the cache lacks them
 (`fe_oracle.cache.lookup`). Their keys hold the oracle's code version, so after a change to the
@@ -26,7 +26,7 @@ import fe_oracle  # noqa: E402
 from fe_oracle import cache  # noqa: E402
 from lvenv import presets  # noqa: E402
 from optim import congruency  # noqa: E402
-from optim.studies import UNSEEN, scenario  # noqa: E402
+from optim.studies import INTERIOR, UNSEEN, scenario  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 
@@ -41,7 +41,7 @@ def main() -> None:
         heart = getattr(presets, name)()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
         results = {f"training {case}": r for case, r in (("passive", data.passive), *((str(k), b) for k, b in data.beats.items()))}
-        for label, change in UNSEEN.items():
+        for label, change in {**UNSEEN, **dict(INTERIOR.values())}.items():
             h = scenario(heart, change)
             results[label] = fe_oracle.run(h.geometry, h.circulation, cell=h.cell, progress=False, **oracle)
         for label, result in results.items():

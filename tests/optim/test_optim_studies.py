@@ -1,28 +1,40 @@
-"""`optim.studies.retune`: maps refitted on each unseen scenario's own oracle beat, against an oracle
-that is the LO heart itself with known maps (the multi-element backend with one element), so the
-retuned maps must come back to those maps and C to zero, whatever the frozen maps were."""
+"""`optim.studies.retune` and `map_transfer`: maps refitted on each unseen scenario's own oracle beat,
+and carried along the scenario's axis, against an oracle that is the LO heart itself with known
+maps (the multi-element backend with one element). Whatever the frozen maps were, the retuned
+maps must come back to those maps and C to zero, at the scenario's end, at its interior point and
+at the training beat, so the maps carried from them along the axis must fit too."""
 
 import dataclasses
 
 import pytest
 
 from lvenv import presets
+from lvenv.validation import InputError
 from optim import studies
 
 #: The oracle's maps: Table 3 with μ1 at the one-element value of the parallel arrangement.
 TRUTH = dataclasses.replace(presets.N_LO, mu1=0.0945, mu2=0.2, gamma=2.5, delay=0.03)
+NAMES = ("mu1", "mu2", "delay")
 
 
-def test_retune_recovers_the_maps_of_the_scenario_beat_that_frozen_maps_miss(tmp_path):
+def test_retuned_maps_recover_the_scenario_beats_maps_and_carry_along_its_axis(tmp_path):
     heart = dataclasses.replace(presets.normal(lo="table3"), lo=dataclasses.replace(TRUTH, mu1=0.08, mu2=0.24, delay=0.04))
-    scenarios = {"n0_0.9": studies.UNSEEN["n0_0.9"]}
-    rows = studies.retune(heart, scenarios, "multielement", names=("mu1", "mu2", "delay"), budget=96, progress=False,
-                          arrangement="parallel", n_elements=1, lo=TRUTH, cache_dir=tmp_path)
-    (row,) = rows
+    (row,) = studies.map_transfer(heart, {"n0_0.9": studies.UNSEEN["n0_0.9"]}, "multielement", names=NAMES, budget=96, progress=False,
+                                  arrangement="parallel", n_elements=1, lo=TRUTH, cache_dir=tmp_path)
     assert row["scenario"] == "n0_0.9" and row["change"] == {"n0": 0.9}
-    assert row["C_frozen"] > 0.05
-    assert row["C_retuned"] < 1e-4
-    for name in ("mu1", "mu2", "delay"):
+    assert row["C_frozen"] > 0.05 and row["C_retuned"] < 1e-4
+    for name in NAMES:
         assert row["retuned"][name] == pytest.approx(getattr(TRUTH, name), rel=1e-3), name
         assert row["frozen"][name] == getattr(heart.lo, name)
-    assert set(row["retuned"]) == {"mu1", "mu2", "delay"}
+    for where in (row["where_frozen"], row["where_retuned"]):
+        assert set(where["share"]) == {"upstroke", "ejection", "relaxation", "filling"}
+        assert sum(where["share"].values()) == pytest.approx(1.0) and min(where["share"].values()) >= 0.0
+    inner = row["interior"]
+    assert inner["scenario"] == studies.INTERIOR["n0_0.9"][0] == "n0_0.8"
+    assert inner["C_frozen"] > 0.02 and inner["C_retuned"] < 1e-4
+    assert row["C_extrapolated"] < 1e-3 and inner["C_interpolated"] < 1e-3
+
+
+def test_a_scenario_without_an_interior_point_is_refused_by_name():
+    with pytest.raises(InputError, match=r"\['sa_x2'\] have no point inside their axis"):
+        studies.map_transfer(presets.normal(), {"sa_x2": {"Sa": 2.0}}, "multielement")
