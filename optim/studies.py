@@ -1,4 +1,5 @@
-"""The paper's two validation studies of congruency training (DESIGN §3, Di Achille et al. 2020).
+"""The paper's two validation studies of congruency training (DESIGN §3, Di Achille et al. 2020), and two of
+ours on why the trained maps miss its unseen scenarios.
 
 * :func:`generalisation` (their Fig. 7): the trained LO heart, maps frozen, against the oracle
   when one cell or circulation parameter at a time leaves its training value: Vmax factor
@@ -12,6 +13,9 @@
   beat at all; the frozen C is how close it comes with the maps of the training beats. Their
   difference is the part of the miss that lies in the maps not carrying over to the scenario, not
   in the model.
+* :func:`map_transfer` (ours): whether maps that follow the cell would carry over: the maps
+  retuned at the training beat and at a point inside each scenario's axis (:data:`INTERIOR`),
+  carried linearly to the scenario's end, and those at the end carried back to the interior point.
 * :func:`multielement_table` (their Table 4): a single-element LO heart trained
   (:func:`optim.congruency.train`) to each 256-element model (parallel and series,
   :mod:`lvenv.multielement`) along four sweeps of ten values: Vmax factor 0.25–4, n0 0.5–0.9,
