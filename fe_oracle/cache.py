@@ -16,8 +16,9 @@ Default directory: ``$LVENV_FE_CACHE`` or ``~/.cache/lvenv/fe_oracle``.
 
 **Shipped runs.** The package ships some entries (:data:`SHIPPED`, written by
 ``scripts/ship_fe_runs.py``: the built-in hearts' training runs, unseen scenarios and points
-inside the scenarios' axes, the runs the candidate studies compare against), without their solver logs. :func:`lookup` reads
-a key from the cache directory, else from there, so a fresh machine does not run them again.
+inside the scenarios' axes, the runs the candidate studies compare against), without their
+solver logs. :func:`lookup` reads a key from the cache directory, else from there, so a fresh
+machine does not run them again.
 Their keys hold the code version like any other: after a change to the oracle's code they are
 never read, and the script writes them anew.
 """

@@ -6,8 +6,9 @@ For each built-in heart (N, HF, `scripts.train_presets.HEARTS`): the runs its tr
 (`optim.congruency.oracle_data`: the passive curve and the beats ①②③, h = 6 mm), its
 unseen scenarios (`optim.studies.UNSEEN`, one beat each under condition ②) and a point inside
 each scenario's axis (`optim.studies.INTERIOR`), the runs `scripts/candidate_study.py hearts` and
-`retune`, `scripts/generalisation.py` and `scripts/train_presets.py` compare against. Each is read from the oracle's cache or run (about a minute per beat on one
-core, more while other work runs), then written to `fe_oracle.cache.SHIPPED` under its key,
+`retune`, `scripts/generalisation.py` and `scripts/train_presets.py` compare against. Each is
+read from the oracle's cache or run (about a minute per beat on one core, more while other work
+runs), then written to `fe_oracle.cache.SHIPPED` under its key,
 without its solver log. `fe_oracle.run` reads them from there when the cache lacks them
 (`fe_oracle.cache.lookup`). Their keys hold the oracle's code version, so after a change to the
 oracle's code they are not read: run this again (the stale files are removed).
