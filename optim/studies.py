@@ -73,9 +73,8 @@ def scenario(heart: Heart, change: Mapping[str, float]) -> Heart:
     return presets.training_condition(2, heart).replace(**change)
 
 
-def _errors(oracle: fe_oracle.OracleResult, t: np.ndarray, v: np.ndarray, p: np.ndarray) -> dict[str, float]:
-    """C and the largest pointwise errors of one LO beat (``t`` s, ``v`` ml, ``p`` kPa) against ``oracle``."""
-    tr = oracle.traces
+def _errors(tr: Mapping[str, np.ndarray], t: np.ndarray, v: np.ndarray, p: np.ndarray) -> dict[str, float]:
+    """C and the largest pointwise errors of one LO beat (``t`` s, ``v`` ml, ``p`` kPa) against the oracle's traces ``tr``."""
     c = float(np.sqrt(congruency(tr, t, v[None], p[None])[0]))
     v = np.interp(tr["t"], t, v)
     p = np.interp(tr["t"], t, p)
@@ -95,7 +94,7 @@ def generalisation(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = 
     rows = []
     for i, (name, h) in enumerate(hearts.items()):
         oracle = fe_oracle.run(h.geometry, h.circulation, backend, cell=h.cell, progress=progress, **oracle_options)
-        rows.append({"scenario": name, "change": dict(scenarios[name]), **_errors(oracle, traces[i]["t"], traces[i]["V"], traces[i]["P_lv"]),
+        rows.append({"scenario": name, "change": dict(scenarios[name]), **_errors(oracle.traces, traces[i]["t"], traces[i]["V"], traces[i]["P_lv"]),
                      "lo_status": str(status[i]), "oracle_key": oracle.metadata["key"], "oracle": oracle.traces, "lo": traces[i]})
     return rows
 
@@ -108,7 +107,8 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
     :func:`optim.congruency.fit_maps` (MADS ``budget`` evaluations from the frozen maps, then
     least squares), with the refitted values, and where each miss sits (``where_frozen``,
     ``where_retuned``: the share of C² per window of the beat and the share a pure time shift
-    removes, :func:`optim.diagnosis.decompose`). The heart keeps its model (``Heart.elements``)."""
+    removes, :func:`optim.diagnosis.decompose`) and the oracle's traces (``oracle``). The heart
+    keeps its model (``Heart.elements``)."""
     rows = []
     for name, change in scenarios.items():
         target = scenario(heart, change)
@@ -123,7 +123,7 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
         rows.append({"scenario": name, "change": dict(change), "C_frozen": frozen["C"], "C_retuned": retuned["C"],
                      "where_frozen": {k: frozen[k] for k in ("share", "timing_share")}, "where_retuned": {k: retuned[k] for k in ("share", "timing_share")},
                      "retuned": {n: float(getattr(lo, n)) for n in names}, "frozen": {n: float(getattr(heart.lo, n)) for n in names},
-                     "oracle_key": oracle.metadata["key"]})
+                     "oracle_key": oracle.metadata["key"], "oracle": oracle.traces})
     return rows
 
 
@@ -133,8 +133,7 @@ def _position(heart: Heart, change: Mapping[str, float]) -> float:
     ((name, value),) = change.items()
     if name == "tau2_factor":
         return value - 1.0
-    trained = presets.training_condition(2, heart)
-    start = getattr(trained.cell, name) if hasattr(trained.cell, name) else getattr(trained.circulation, name)
+    start = presets.training_condition(2, heart).get(name)
     return float(np.log(value / start)) if name == "vmax_factor" else value - start
 
 
@@ -160,22 +159,23 @@ def map_transfer(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UN
     def maps(name: str) -> np.ndarray:
         return np.array([rows[name]["retuned"][n] for n in names])
 
-    def beat_c(change: Mapping[str, float], values: np.ndarray) -> float:
+    def carried(name: str, values: np.ndarray) -> Heart:
         lo = dataclasses.replace(heart.lo, **dict(zip(names, map(float, np.clip(values, lower, upper)))))
-        target = scenario(dataclasses.replace(heart, lo=lo), change)
-        oracle = fe_oracle.run(target.geometry, target.circulation, backend, cell=target.cell, progress=progress, **oracle_options)
-        _, t, v, p = one_beat([target], steps_per_beat)
-        return _errors(oracle, t[0], v[0], p[0])["C"]
+        return scenario(dataclasses.replace(heart, lo=lo), rows[name]["change"])
 
-    out = []
+    # per scenario: its end with the extrapolated maps, its interior point with the interpolated ones
+    beats = []
     for name, change in scenarios.items():
-        inner, inner_change = INTERIOR[name]
-        w = _position(heart, change) / _position(heart, inner_change)
-        extrapolated = maps("training") + w * (maps(inner) - maps("training"))
-        interpolated = maps("training") + (maps(name) - maps("training")) / w
-        out.append({**rows[name], "C_extrapolated": beat_c(change, extrapolated),
-                    "interior": {"scenario": inner, "C_frozen": rows[inner]["C_frozen"], "C_retuned": rows[inner]["C_retuned"],
-                                 "C_interpolated": beat_c(inner_change, interpolated)}})
+        inner = INTERIOR[name][0]
+        w = _position(heart, change) / _position(heart, rows[inner]["change"])
+        beats += [(name, maps("training") + w * (maps(inner) - maps("training"))), (inner, maps("training") + (maps(name) - maps("training")) / w)]
+    _, t, v, p = one_beat([carried(name, values) for name, values in beats], steps_per_beat)
+    c = [_errors(rows[name]["oracle"], t[i], v[i], p[i])["C"] for i, (name, _) in enumerate(beats)]
+    out = []
+    for j, name in enumerate(scenarios):
+        inner = INTERIOR[name][0]
+        out.append({**rows[name], "C_extrapolated": c[2 * j],
+                    "interior": {"scenario": inner, "C_frozen": rows[inner]["C_frozen"], "C_retuned": rows[inner]["C_retuned"], "C_interpolated": c[2 * j + 1]}})
     return out
 
 
