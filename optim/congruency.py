@@ -69,7 +69,7 @@ from optim.methods import make_optimizer
 from optim.protocol import Bounds, padded, run
 
 __all__ = [
-    "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
+    "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "MAP_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
     "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active", "fit_maps",
     "train", "train_on", "check_fidelity",
 ]
@@ -78,6 +78,9 @@ TRAINING_PASSIVE = Passive(p_max=4.0, n_points=17, p_min=-0.75)
 CONDITIONS = (1, 2, 3)
 PASSIVE_NAMES = ("alpha", "beta", "a", "b", "c")
 ACTIVE_NAMES = ("mu1", "mu2", "gamma")
+#: The maps with the activation delay: what the delayed active fit, `train_model` and the refits
+#: of the maps on other beats (`optim.studies.retune`, `check_fidelity`'s ``retune``) move.
+MAP_NAMES = (*ACTIVE_NAMES, "delay")
 #: Search box of the active parameters (the delay in s).
 ACTIVE_BOUNDS = {"mu1": (0.02, 0.6), "mu2": (0.02, 1.5), "gamma": (0.2, 30.0), "delay": (0.0, 0.2)}
 TARGET_C = 0.01
@@ -148,11 +151,11 @@ def training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams
     return [Heart(geometry=geometry, lo=lo, cell=cell, circulation=circ, elements=elements) for lo in los for circ in base]
 
 
-def one_beat(hearts: Sequence[Heart], steps_per_beat: int = 1000) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One beat of each of ``hearts`` from the training-protocol state, one batched simulation
-    (`lvenv.simulate`, of the model the hearts carry): (status names (members,), t (s), V (ml),
-    P_lv (kPa), each (members, samples))."""
-    sim = simulate(hearts, beats=1, steps_per_beat=steps_per_beat)
+def one_beat(hearts: Sequence[Heart], steps_per_beat: int = 1000, beats: int | None = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The last of ``beats`` beats of each of ``hearts`` from the training-protocol state (None:
+    its steady beat), one batched simulation (`lvenv.simulate`, of the model the hearts carry):
+    (status names (members,), t (s), V (ml), P_lv (kPa), each (members, samples))."""
+    sim = simulate(hearts, beats=beats, steps_per_beat=steps_per_beat)
     return np.asarray(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv
 
 
@@ -224,14 +227,16 @@ def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_
 
 def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Mapping[str, np.ndarray]], start: LOParams,
              names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16, seed: int = 0, steps_per_beat: int = 1000,
-             progress: bool | None = None, bounds: Mapping[str, tuple[float, float]] | None = None) -> tuple[LOParams, np.ndarray]:
+             progress: bool | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
+             run_beats: int | None = 1) -> tuple[LOParams, np.ndarray]:
     """Minimise C² = mean over beats of C_i² over the LO parameters ``names`` by OrthoMADS with
     kriging search, from ``start`` (clipped into the boxes), then polish by bounded least squares
     on the residuals of C²; returns the best LO parameters and C per beat. ``hearts(lo)``: the LO
     hearts of one candidate, one per beat of ``oracles`` (traces ``t`` s, ``V`` ml, ``P_lv`` kPa);
-    each batch of candidates is one `lvenv.simulate` call (:func:`one_beat`). ``bounds``: as in
+    each batch of candidates is one `lvenv.simulate` call (:func:`one_beat`: the last of
+    ``run_beats`` beats, None: the steady beat, as the oracle's beats were run). ``bounds``: as in
     :func:`fit_active`. :func:`fit_active` fits the training beats; `optim.studies.retune` one
-    unseen scenario's beat.
+    unseen scenario's beat; :func:`check_fidelity` the beat of a heart's closed loop.
 
     C² can have several local minima (seen against the series multi-element model). When a MADS
     run converges (poll size below its minimum) before the budget is spent, MADS restarts from a
@@ -247,7 +252,7 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
         return [dataclasses.replace(start, **dict(zip(names, map(float, row)))) for row in x]
 
     def beats(los: Sequence[LOParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        status, t, v, p = one_beat([h for lo in los for h in hearts(lo)], steps_per_beat)
+        status, t, v, p = one_beat([h for lo in los for h in hearts(lo)], steps_per_beat, run_beats)
         return is_usable(status), t, v, p
 
     def objective(x: np.ndarray) -> np.ndarray:
@@ -344,7 +349,7 @@ def train_on(data: OracleData, *, start: LOParams | None = None, delay: str = "a
     without = None
     if delay == "always" or (delay == "auto" and not overall(c_runs) < TARGET_C):
         base = lo if lo is not None else dataclasses.replace(lo_passive, gamma=start.gamma)
-        lo_s, c_s = fit(dataclasses.replace(base, delay=0.04), (*ACTIVE_NAMES, "delay"))
+        lo_s, c_s = fit(dataclasses.replace(base, delay=0.04), MAP_NAMES)
         without = None if c_runs is None else congruency_dict(c_runs)
         if c_runs is None or overall(c_s) < overall(c_runs):
             lo, c_runs = lo_s, c_s
@@ -395,7 +400,7 @@ def train_model(data: OracleData, single: TrainedLO, model: str, *, budget: int 
         raise InputError(f"train_model starts from a single-cell record of the same wall (got elements = {single.elements!r}, "
                          f"geometry {single.geometry} for data of {data.geometry})")
     arrangement = wall_arrangement(*presets.LO_MODELS[model], data)
-    lo, c_runs = fit_active(data, single.lo, (*ACTIVE_NAMES, "delay"), budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat,
+    lo, c_runs = fit_active(data, single.lo, MAP_NAMES, budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat,
                             progress=progress, arrangement=arrangement)
     provenance = _provenance(data, budget=budget, batch=batch, seed=seed, steps_per_beat=steps_per_beat, model=model,
                              start=dataclasses.asdict(single.lo), onset_quantiles=list(presets.onset_quantiles(arrangement.n_elements)))
@@ -413,7 +418,10 @@ FIDELITY_TOLERANCE = {
 class Fidelity:
     """LO against oracle at one heart. ``rows[name] = (lo, oracle, difference)`` in internal units
     (difference = oracle − LO; relative to the oracle for pressures, see :data:`FIDELITY_TOLERANCE`);
-    ``within[name]``: inside the tolerance; ``C``: congruency of the last beat's V and P traces."""
+    ``within[name]``: inside the tolerance; ``C``: congruency of the last beat's V and P traces.
+    ``retuned`` (None unless :func:`check_fidelity` was asked to retune): the same comparison
+    with the LO parameters ``retune`` refitted on the oracle's last beat: ``lo`` (name → value),
+    ``rows``, ``within``, ``C`` and ``lo_status``."""
 
     rows: dict[str, tuple[float, float, float]]
     within: dict[str, bool]
@@ -421,6 +429,7 @@ class Fidelity:
     oracle_valid: bool
     lo_status: str
     provenance: dict[str, Any]
+    retuned: dict[str, Any] | None = None
 
     @property
     def ok(self) -> bool:
@@ -430,11 +439,33 @@ class Fidelity:
         return dataclasses.asdict(self) | {"ok": self.ok}
 
 
+def _compare(lo_run, fe: Mapping[str, float], traces: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """An LO steady state ``lo_run`` against the oracle's beat metrics ``fe`` and its last beat's
+    ``traces``: rows, within and C as :class:`Fidelity` holds them."""
+    rows, within = {}, {}
+    for name, (kind, bound) in FIDELITY_TOLERANCE.items():
+        lo_value, fe_value = float(lo_run.metrics[name]), float(fe[name])
+        diff = fe_value - lo_value if kind == "abs" else (fe_value - lo_value) / fe_value
+        rows[name] = (lo_value, fe_value, diff)
+        within[name] = bool(abs(diff) <= bound)
+    c = float(np.sqrt(congruency(traces, lo_run.traces.t, lo_run.traces.V, lo_run.traces.P_lv)[0]))
+    return {"rows": rows, "within": within, "C": c}
+
+
 def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, steps_per_beat: int = 1000,
-                   progress: bool | None = None, **oracle_options: Any) -> Fidelity:
+                   progress: bool | None = None, retune: Sequence[str] = (), retune_budget: int = 480, **oracle_options: Any) -> Fidelity:
     """Run the oracle at ``heart`` (closed loop, from the LO steady state, ``beats`` beats) and
-    compare its last beat with the LO steady state (module docstring)."""
+    compare its last beat with the LO steady state (module docstring).
+
+    ``retune``: LO parameters (⊆ {μ1, μ2, γ, delay}) to refit on that last beat by :func:`fit_maps`
+    (MADS ``retune_budget`` evaluations from the heart's own values, then least squares), and the
+    comparison repeated with them (``Fidelity.retuned``): how close the LO model can come to the
+    oracle at this heart at all, against how close its trained maps come."""
     beats = integer("beats", beats, 1)
+    retune = tuple(retune)
+    unknown = sorted(set(retune) - set(MAP_NAMES))
+    if unknown:
+        raise InputError(f"retune = {unknown}: only the active maps and the delay can be refitted ({list(MAP_NAMES)})")
     lo_run = simulate(heart, steps_per_beat=steps_per_beat)
     if not is_usable(lo_run.status):
         raise InputError(f"the LO heart has no usable steady state (status {lo_run.status!r}); nothing to check")
@@ -443,16 +474,16 @@ def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, st
     circ = dataclasses.replace(heart.circulation, Pc0=float(y[i_pc]), Pat=float(y[i_pat]))
     result = fe_oracle.run(heart.geometry, circ, backend, cell=heart.cell, beats=beats, progress=progress, **oracle_options)
     fe = fe_oracle.beat_metrics(result)
-    rows, within = {}, {}
-    for name, (kind, bound) in FIDELITY_TOLERANCE.items():
-        lo_value, fe_value = float(lo_run.metrics[name]), float(fe[name])
-        diff = fe_value - lo_value if kind == "abs" else (fe_value - lo_value) / fe_value
-        rows[name] = (lo_value, fe_value, diff)
-        within[name] = bool(abs(diff) <= bound)
     period = float(result.metadata["period_s"])
     last = result.traces["t"] >= result.traces["t"][-1] - period - 1e-9
     traces = {k: result.traces[k][last] for k in ("V", "P_lv")} | {"t": result.traces["t"][last] - result.traces["t"][last][0]}
-    c = float(np.sqrt(congruency(traces, lo_run.traces.t, lo_run.traces.V, lo_run.traces.P_lv)[0]))
+    frozen = _compare(lo_run, fe, traces)
+    retuned = None
+    if retune:
+        lo, _ = fit_maps(lambda lo: [dataclasses.replace(heart, lo=lo)], [traces], heart.lo, retune, budget=retune_budget,
+                         steps_per_beat=steps_per_beat, progress=progress, run_beats=None)
+        rerun = simulate(dataclasses.replace(heart, lo=lo), steps_per_beat=steps_per_beat)
+        retuned = {"lo": {n: float(getattr(lo, n)) for n in retune}, "lo_status": str(rerun.status), **_compare(rerun, fe, traces)}
     provenance = {"backend": backend, "oracle_key": result.metadata["key"], "beats": beats, "circulation": dataclasses.asdict(circ),
                   "oracle_options": {k: v for k, v in oracle_options.items() if isinstance(v, (int, float, str))}}
-    return Fidelity(rows, within, c, bool(fe["valid"]), str(lo_run.status), provenance)
+    return Fidelity(frozen["rows"], frozen["within"], frozen["C"], bool(fe["valid"]), str(lo_run.status), provenance, retuned)

@@ -6,6 +6,12 @@ IVRT, aortic pulse pressure) with each method through one vector env per patient
 `pv_<patient>.png`: the fitted PV loops against the target end-systolic volume, and every
 method's observation / target ratio per target.
 
+`corrected_fit` fits a patient, runs the oracle at its best fit (`optim.congruency.check_fidelity`),
+refits the heart's maps {μ1, μ2, γ, delay} on that oracle beat and fits the patient again with
+them, for a number of rounds, then checks the last fit against the oracle: maps trained where the
+fit lands instead of at the training beats, since maps trained on the training beats do not carry
+over to other cells and circulations (`optim.studies.retune`).
+
 `synthetic_recovery` draws ground-truth parameter sets inside the bounds, uses their simulated
 observations as a patient's targets, fits them back, and reports per parameter how far the fits
 land from the truth (identifiability).
@@ -35,10 +41,12 @@ from lvenv.metrics import METRICS
 from lvenv.params import Heart
 from lvenv.patients import Patient, builtin
 from lvenv.plausibility import Band, inside_bands
+from lvenv.validation import integer
+from optim.congruency import MAP_NAMES, Fidelity, check_fidelity
 from optim.minimize import MinimizeResult, minimize
 
 __all__ = [
-    "FitRow", "DEFAULT_OPTIONS", "make_env", "warm_up", "fit_patients", "plot_fits", "null_directions",
+    "FitRow", "DEFAULT_OPTIONS", "make_env", "warm_up", "fit_patients", "CorrectionRound", "corrected_fit", "plot_fits", "null_directions",
     "synthetic_recovery", "RecoveryReport", "draw_truths", "Truths", "ENV_SIMULATION",
 ]
 
@@ -130,6 +138,49 @@ def fit_patients(
     if out_dir is not None:
         plot_fits(rows, {_patient(p).name: _patient(p) for p in patients}, out_dir, steps_per_beat)
     return rows
+
+
+@dataclasses.dataclass(frozen=True)
+class CorrectionRound:
+    """One round of :func:`corrected_fit`: the maps the patient's heart carried (``maps``, name →
+    value), the best fit with them (``fit``) and the oracle's check at that fit (``fidelity``;
+    ``fidelity.retuned`` holds the maps refitted on its beat, for the next round)."""
+
+    maps: dict[str, float]
+    fit: FitRow
+    fidelity: Fidelity
+
+
+def corrected_fit(patient: str | Patient, methods: Sequence[str] = ("cma",), rounds: int = 1, *, first: FitRow | None = None,
+                  backend: str = "dolfinx", beats: int = 2, retune_budget: int = 480, num_envs: int = 16, budget: int = 480,
+                  seed: int = 0, steps_per_beat: int = 1000, plausibility: bool | Sequence[Band] = True,
+                  **oracle_options: Any) -> list[CorrectionRound]:
+    """``rounds`` + 1 rounds of: fit ``patient`` with ``methods`` (:func:`fit_patients`; the best
+    fit), run the oracle ``backend`` at it for ``beats`` beats (`check_fidelity`), and, but in the
+    last round, refit the maps :data:`~optim.congruency.MAP_NAMES` on that beat (MADS
+    ``retune_budget`` evaluations, then least squares) for the next round's heart, whose fit
+    starts from this round's fit. (The targets leave directions of the parameters free: fits from
+    one start land at other points along them in each round, where the refitted maps need not
+    hold.) ``first``: the first round's fit, if the patient was fitted already (with its own
+    maps). Each round costs one oracle run (``beats`` beats; at h = 6 mm about 2 min a beat) and,
+    but the last, one refit of the maps (minutes on one core)."""
+    patient = _patient(patient)
+    rounds = integer("rounds", rounds, 0)
+    out: list[CorrectionRound] = []
+    for r in range(rounds + 1):
+        if r == 0 and first is not None:
+            best = first
+        else:
+            fits = fit_patients([patient], methods, num_envs, budget, seed, None, steps_per_beat, plausibility=plausibility)
+            best = min(fits, key=lambda row: row.mismatch)
+        heart = patient.heart.replace(**best.parameters)
+        report = check_fidelity(heart, backend, beats=beats, steps_per_beat=steps_per_beat, retune=MAP_NAMES if r < rounds else (),
+                                retune_budget=retune_budget, **oracle_options)
+        out.append(CorrectionRound({n: float(getattr(heart.lo, n)) for n in MAP_NAMES}, best, report))
+        if r < rounds:
+            lo = dataclasses.replace(heart.lo, **report.retuned["lo"])
+            patient = dataclasses.replace(patient, heart=dataclasses.replace(heart, lo=lo))
+    return out
 
 
 def _fit_lm(patient: Patient, seed: int, steps_per_beat: int, plausibility: bool | Sequence[Band],

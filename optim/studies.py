@@ -34,7 +34,7 @@ import fe_oracle
 from lvenv import presets
 from lvenv.params import CellParams, Heart, LOParams
 from lvenv.validation import InputError
-from optim.congruency import ACTIVE_BOUNDS, ACTIVE_NAMES, congruency, fit_maps, one_beat, train
+from optim.congruency import ACTIVE_BOUNDS, MAP_NAMES, congruency, fit_maps, one_beat, train
 from optim.diagnosis import decompose
 
 __all__ = ["UNSEEN", "INTERIOR", "SWEEPS", "scenario", "generalisation", "retune", "map_transfer", "multielement_table"]
@@ -100,7 +100,7 @@ def generalisation(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = 
 
 
 def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
-           names: Sequence[str] = (*ACTIVE_NAMES, "delay"), budget: int = 480, steps_per_beat: int = 1000, progress: bool | None = None,
+           names: Sequence[str] = MAP_NAMES, budget: int = 480, steps_per_beat: int = 1000, progress: bool | None = None,
            **oracle_options: Any) -> list[dict[str, Any]]:
     """One row per scenario: its name, C with ``heart``'s maps frozen (as :func:`generalisation`),
     and C with the LO parameters ``names`` refitted to that scenario's own oracle beat by
@@ -138,7 +138,7 @@ def _position(heart: Heart, change: Mapping[str, float]) -> float:
 
 
 def map_transfer(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
-                 names: Sequence[str] = (*ACTIVE_NAMES, "delay"), budget: int = 480, steps_per_beat: int = 1000,
+                 names: Sequence[str] = MAP_NAMES, budget: int = 480, steps_per_beat: int = 1000,
                  progress: bool | None = None, **oracle_options: Any) -> list[dict[str, Any]]:
     """Do the maps follow the cell smoothly enough to be regressed on it? :func:`retune` at the
     training beat (condition ②), at each scenario's end and at its :data:`INTERIOR` point; then,

@@ -97,7 +97,6 @@ RELAX_GRID = (0.85, 0.9, 0.95, 1.0, 1.05)
 CANDIDATES = ("single", *ARRANGED, *EXTENDED)
 #: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
 GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
-TRAINED = (*congruency.ACTIVE_NAMES, "delay")
 
 
 def arrangement(name: str, data: congruency.OracleData, lo: LOParams) -> Arrangement | None:
@@ -124,16 +123,16 @@ def train(data: congruency.OracleData, trained: LOParams, names, budget: int) ->
         arr = arrangement(base, data, trained)
         r = 1.0
         if term == "relax":
-            fits = {r: congruency.fit_active(relaxed(data, r), trained, TRAINED, budget=budget, arrangement=arr) for r in RELAX_GRID}
+            fits = {r: congruency.fit_active(relaxed(data, r), trained, congruency.MAP_NAMES, budget=budget, arrangement=arr) for r in RELAX_GRID}
             r = min(fits, key=lambda k: congruency.overall(fits[k][1]))
             lo, c = fits[r]
         elif term == "filling":
             box = {"c": (1.05 * trained.b**2 / (3.0 * trained.a), 4.0 * trained.c)}
-            lo, c = congruency.fit_active(data, trained, (*TRAINED, "c"), budget=budget, arrangement=arr, bounds=box)
+            lo, c = congruency.fit_active(data, trained, (*congruency.MAP_NAMES, "c"), budget=budget, arrangement=arr, bounds=box)
         elif arr is None:
             lo, c = trained, congruency.run_congruency(data, [trained])[0]
         else:
-            lo, c = congruency.fit_active(data, trained, TRAINED, budget=budget, arrangement=arr)
+            lo, c = congruency.fit_active(data, trained, congruency.MAP_NAMES, budget=budget, arrangement=arr)
         out[name] = (lo, c, arr, time.perf_counter() - t0, r)
         print(f"{data.geometry} {name}: C {100 * congruency.overall(c):.2f} % (r {r:g})", file=sys.stderr, flush=True)
     return out
@@ -146,7 +145,7 @@ def window_c2(data: congruency.OracleData, lo: LOParams, arr: Arrangement | None
 
 
 def _summary(lo: LOParams, c: np.ndarray, seconds: float, r: float) -> dict:
-    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, "relax": r, **{k: getattr(lo, k) for k in (*TRAINED, "c")}}
+    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, "relax": r, **{k: getattr(lo, k) for k in (*congruency.MAP_NAMES, "c")}}
 
 
 def dataset_mode(args, command: str) -> dict:
@@ -237,7 +236,7 @@ def retune_mode(args, command: str) -> dict:
     for heart_name, heart, fits in trained_hearts(args, {}):
         for name, (lo, c, arr, seconds, factor) in fits.items():
             t0 = time.perf_counter()
-            rows = map_transfer(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=TRAINED, budget=args.budget, progress=False)
+            rows = map_transfer(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=congruency.MAP_NAMES, budget=args.budget, progress=False)
             keep = ("C_frozen", "C_retuned", "C_extrapolated", "retuned", "where_frozen", "where_retuned", "interior")
             results.append({"heart": heart_name, "candidate": name, "training": _summary(lo, c, seconds, factor), "retune_seconds": time.perf_counter() - t0,
                             "unseen": {r["scenario"]: {k: r[k] for k in keep} for r in rows}})

@@ -8,6 +8,8 @@ the paper's question, where the four methods' point ratios disagree.
     python scripts/fit_patients.py [--budget 480] [--num-envs 16] [--out out/fit]
     python scripts/fit_patients.py --synthetic 10 --method cma     # synthetic recovery
     python scripts/fit_patients.py --fidelity [--fidelity-mesh 6]  # also check each patient's best fit against the 3-D oracle
+    python scripts/fit_patients.py --fidelity --retune-maps        # and refit the maps on that FE beat: the model's own floor there
+    python scripts/fit_patients.py --correct-maps 1 --methods cma  # fit again with the maps refitted on the FE beat, check again
     python scripts/fit_patients.py --posterior-samples 0            # point fits only
     python scripts/fit_patients.py --importance 0                   # the flow's own draws, not reweighted
     python scripts/fit_patients.py --model series3 --fidelity      # the 3-cell series LO heart (lvenv.presets.LO_MODELS)
@@ -15,6 +17,18 @@ the paper's question, where the four methods' point ratios disagree.
 ``--model``: the LO heart the patients' hearts carry (default the single cell). The env then runs
 that model (a multi-element one with the fixed scheme at ``--steps-per-beat``); the amortised
 posteriors, trained on the single cell, are shown for the single cell only.
+
+``--retune-maps`` (with ``--fidelity``): {μ1, μ2, γ, delay} refitted on the FE beat at each
+patient's best fit (`optim.congruency.check_fidelity` with ``retune``; MADS, 480 evaluations,
+then least squares, a minute or two), and FE − LO shown again with the refitted maps. The
+trained maps' miss less the refitted maps' miss is what maps trained at the fitted parameters
+(a regression of the maps on the cell and the circulation) could recover; what stays is the LO
+model's own floor at that heart.
+
+``--correct-maps K`` (`optim.fit.corrected_fit`): K rounds of refitting the maps on the FE beat
+at the patient's best fit and fitting the patient again with them (``--methods``), then the FE
+check of the last fit: each round costs one FE run (``--fidelity-beats`` beats, about 2 min
+each at h = 6 mm), one refit of the maps and one fit.
 """
 
 from __future__ import annotations
@@ -33,7 +47,8 @@ from lvenv.patients import builtin
 from lvenv.presets import LO_MODELS
 from lvenv.metrics import display, header
 from lvenv.plausibility import report, resolve
-from optim.fit import fit_patients, synthetic_recovery
+from optim.congruency import FIDELITY_TOLERANCE, MAP_NAMES, check_fidelity
+from optim.fit import corrected_fit, fit_patients, synthetic_recovery
 
 
 def _show(name: str, value: float) -> str:
@@ -128,6 +143,10 @@ def main() -> None:
     ap.add_argument("--fidelity", action="store_true", help="run the 3-D oracle at each patient's best fit (optim.congruency.check_fidelity)")
     ap.add_argument("--fidelity-mesh", type=float, default=6.0, help="FE mesh size h (mm) of the fidelity check")
     ap.add_argument("--fidelity-beats", type=int, default=2, help="FE beats from the LO steady state")
+    ap.add_argument("--retune-maps", action="store_true",
+                    help="with --fidelity: refit {mu1, mu2, gamma, delay} on each FE beat and compare again (the model's own floor there)")
+    ap.add_argument("--correct-maps", type=int, default=0, metavar="K",
+                    help="K rounds of: maps refitted on the FE beat at the best fit, the patient fitted again with them; then the FE check")
     ap.add_argument("--no-plausibility", dest="plausibility", action="store_false",
                     help="drop the filling-pressure bands (mean atrial pressure, EDP) from the objective")
     ap.add_argument("--posterior-samples", type=int, default=4000, metavar="N",
@@ -136,6 +155,10 @@ def main() -> None:
                     help="flow draws per patient reweighted by the exact posterior (one simulation each; 0: the flow's draws as they are; "
                          f"default: {IMPORTANCE_PER_SAMPLE} per posterior sample)")
     a = ap.parse_args()
+    if a.retune_maps and not a.fidelity:
+        ap.error("--retune-maps refits the maps on the fidelity check's FE beat: it needs --fidelity")
+    if a.correct_maps < 0:
+        ap.error(f"--correct-maps {a.correct_maps}: the number of correction rounds must be >= 0")
     if a.synthetic:
         rep = synthetic_recovery(a.synthetic, a.method, a.num_envs, a.budget or 1600, a.seed, a.steps_per_beat)
         print(f"synthetic recovery, {a.method}, {a.synthetic} truths, budget {a.budget or 1600}, {rep.wall_time:.0f} s")
@@ -165,25 +188,60 @@ def main() -> None:
     worst = max(r.mismatch for r in rows)
     print(f"\nworst mismatch {100 * worst:.2f} % (goal < 3 %); plots in {a.out}/"
           if math.isfinite(worst) else "\nsome fit found no valid point")
-    if a.fidelity:
-        print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model)
+    if a.correct_maps:
+        print_corrected(rows, a)
+    elif a.fidelity:
+        print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model, a.retune_maps)
 
 
-def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single") -> None:
-    """The 3-D oracle at each patient's best fit (of the LO heart ``model``): LO, FE and their difference per target."""
-    from optim.congruency import FIDELITY_TOLERANCE, check_fidelity
+def _difference(name: str, diff: float) -> str:
+    """FE − LO of target ``name`` as the fidelity table shows it (% for pressures, points for EF)."""
+    if FIDELITY_TOLERANCE[name][0] == "rel":
+        return f"{100 * diff:+.2f} %"
+    return f"{100 * diff:+.2f} points" if name == "EF" else _show(name, diff)
 
+
+def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False) -> None:
+    """The 3-D oracle at each patient's best fit (of the LO heart ``model``): LO, FE and their
+    difference per target; with ``retune_maps`` also FE − LO with the maps refitted on that FE beat."""
     for patient in dict.fromkeys(r.patient for r in rows):
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
         heart = builtin(patient, model).heart.replace(**best.parameters)
-        rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats)
-        print(f"\nfidelity of {patient} ({best.method} fit) against the 3-D oracle (h = {mesh_size:g} mm, {beats} beats): "
-              f"C {100 * rep.C:.2f} %, {'within' if rep.ok else 'OUTSIDE'} tolerance")
-        for name, (lo, fe, diff) in rep.rows.items():
-            kind, bound = FIDELITY_TOLERANCE[name]
-            shown = f"{100 * diff:+.2f} %" if kind == "rel" else f"{_show(name, diff) if name != 'EF' else f'{100 * diff:+.2f} points'}"
-            print(f"  {header(name):18s} LO {_show(name, lo):>7s}  FE {_show(name, fe):>7s}  FE − LO {shown:>12s}  {'ok' if rep.within[name] else 'OUT'}")
+        rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats, retune=MAP_NAMES if retune_maps else ())
+        print_check(f"fidelity of {patient} ({best.method} fit) against the 3-D oracle (h = {mesh_size:g} mm, {beats} beats)",
+                    {n: getattr(heart.lo, n) for n in MAP_NAMES}, rep)
 
+
+def print_corrected(rows, a) -> None:
+    """``--correct-maps``: each patient's rounds of `optim.fit.corrected_fit` from its best fit in ``rows``."""
+    for patient in dict.fromkeys(r.patient for r in rows):
+        best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
+        rounds = corrected_fit(builtin(patient, a.model), a.methods, a.correct_maps, first=best, beats=a.fidelity_beats,
+                               num_envs=a.num_envs, budget=a.budget or 480, seed=a.seed, steps_per_beat=a.steps_per_beat,
+                               plausibility=a.plausibility, mesh_size=a.fidelity_mesh)
+        for r, step in enumerate(rounds):
+            source = "trained" if r == 0 else f"refitted on round {r - 1}'s FE beat"
+            print_check(f"{patient}, round {r} (maps {source}; {step.fit.method} fit, mismatch {100 * step.fit.mismatch:.2f} %) "
+                        f"against the 3-D oracle (h = {a.fidelity_mesh:g} mm, {a.fidelity_beats} beats)", step.maps, step.fidelity,
+                        step.fit.parameters)
+
+
+def print_check(title: str, maps: dict, rep, parameters: dict | None = None) -> None:
+    """One fidelity check ``rep`` (`optim.congruency.Fidelity`) of a heart with the maps ``maps``
+    (fitted ``parameters``, if given): C, and LO, FE and FE − LO per target, also with the maps
+    refitted on the FE beat if it has them."""
+    print(f"\n{title}: C {100 * rep.C:.2f} %, {'within' if rep.ok else 'OUTSIDE'} tolerance")
+    if parameters is not None:
+        print("  fit: " + ", ".join(f"{n} {_param(n, v)}{' ms' if n == 'tau2' else ''}" for n, v in parameters.items()))
+    again = rep.retuned
+    if again is not None:
+        print(f"  maps refitted on this FE beat ({', '.join(f'{n} {again['lo'][n]:.4g}' for n in MAP_NAMES)}; "
+              f"before: {', '.join(f'{n} {maps[n]:.4g}' for n in MAP_NAMES)}): C {100 * again['C']:.2f} %")
+    for name, (lo, fe, diff) in rep.rows.items():
+        line = f"  {header(name):18s} LO {_show(name, lo):>7s}  FE {_show(name, fe):>7s}  FE − LO {_difference(name, diff):>12s}  {'ok' if rep.within[name] else 'OUT'}"
+        if again is not None:
+            line += f"  | refitted maps: FE − LO {_difference(name, again['rows'][name][2]):>12s}  {'ok' if again['within'][name] else 'OUT'}"
+        print(line)
 
 if __name__ == "__main__":
     main()

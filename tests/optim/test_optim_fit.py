@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import re
 from pathlib import Path
@@ -10,8 +11,11 @@ import numpy as np
 import pytest
 
 import lvenv
+from lvenv import presets
 from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
-from optim.fit import fit_patients, null_directions, synthetic_recovery
+from lvenv.patients import builtin
+from optim.congruency import MAP_NAMES
+from optim.fit import corrected_fit, fit_patients, null_directions, synthetic_recovery
 
 TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "fit_patients.py"
@@ -109,7 +113,6 @@ def test_synthetic_recovery_of_ten_truths_within_one_percent():
 def test_make_env_takes_a_patient_record_path_and_picks_the_scheme_of_its_model(tmp_path):
     """A JSON path (as the env takes it) gets the env's default scheme for the record's LO heart
     model: adaptive for the single cell, fixed for the 3-cell series heart."""
-    from lvenv.patients import builtin
     from optim.fit import make_env
 
     for model, scheme in (("single", "adaptive"), ("series3", "fixed")):
@@ -118,3 +121,32 @@ def test_make_env_takes_a_patient_record_path_and_picks_the_scheme_of_its_model(
         venv = make_env(str(path), num_envs=2)
         assert venv.unwrapped.config.scheme == scheme and venv.unwrapped.patients[0].heart.elements == builtin("heart_failure", model).heart.elements
         venv.close()
+
+
+
+def test_corrected_fit_refits_the_maps_on_the_oracle_beat_and_the_next_fit_matches_the_oracle(tmp_path, capsys):
+    """`corrected_fit` against an oracle that is the LO heart with other maps (the multi-element
+    backend with one element): the maps refitted on the oracle's beat at the first fit come back
+    to the oracle's, up to the oracle's own start (its closed loop starts from the LO heart's
+    pressures with its own volume and has a few beats to settle), so the next fit, made with
+    them, lands where the oracle agrees with the LO heart. The script prints both comparisons."""
+    truth = dataclasses.replace(presets.N_LO, mu1=0.0945, mu2=0.2, gamma=2.5, delay=0.03)
+    normal = builtin("normal")
+    patient = dataclasses.replace(normal, heart=normal.heart.replace(lo=dataclasses.replace(truth, mu2=0.17, delay=0.045)))
+    rounds = corrected_fit(patient, ("cma",), 1, backend="multielement", beats=5, retune_budget=32, num_envs=8, budget=64,
+                           steps_per_beat=500, arrangement="parallel", n_elements=1, lo=truth, cache_dir=tmp_path)
+    assert len(rounds) == 2 and all(r.fit.method == "cma" for r in rounds)
+    assert rounds[0].maps == {n: getattr(patient.heart.lo, n) for n in MAP_NAMES}
+    assert rounds[1].maps == rounds[0].fidelity.retuned["lo"] and rounds[1].fidelity.retuned is None
+    for name in ("mu1", "mu2", "delay"):
+        assert rounds[1].maps[name] == pytest.approx(getattr(truth, name), rel=0.02), name
+    assert rounds[0].fidelity.C > 0.1 and rounds[0].fidelity.retuned["C"] < 0.02
+    assert rounds[1].fidelity.C < min(0.02, rounds[0].fidelity.C / 10), (rounds[0].fidelity.C, rounds[1].fidelity.C)
+    spec = importlib.util.spec_from_file_location("fit_patients_script", SCRIPT)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    script.print_check("round 0", rounds[0].maps, rounds[0].fidelity)
+    text = capsys.readouterr().out
+    assert f"round 0: C {100 * rounds[0].fidelity.C:.2f} %, OUTSIDE tolerance" in text
+    assert f"mu2 {rounds[1].maps['mu2']:.4g}" in text and f"C {100 * rounds[0].fidelity.retuned['C']:.2f} %" in text
+    assert text.count("| refitted maps: FE − LO") == len(rounds[0].fidelity.rows)
