@@ -243,5 +243,6 @@ def print_check(title: str, maps: dict, rep, parameters: dict | None = None) -> 
             line += f"  | refitted maps: FE − LO {_difference(name, again['rows'][name][2]):>12s}  {'ok' if again['within'][name] else 'OUT'}"
         print(line)
 
+
 if __name__ == "__main__":
     main()
