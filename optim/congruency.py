@@ -59,7 +59,7 @@ from fe_oracle import cache as oracle_cache
 from fe_oracle.cases import Passive
 from lvenv import coupling, lo_model, presets
 from lvenv.geometry import Geometry, cavity_volume
-from lvenv.params import Arrangement, CellParams, Heart, LOParams
+from lvenv.params import Arrangement, CellParams, Heart, LOParams, validate
 from lvenv.simulation import simulate
 from lvenv.status import is_usable
 from lvenv.trained import TrainedLO
@@ -70,7 +70,7 @@ from optim.protocol import Bounds, padded, run
 
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "MAP_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
-    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "fit_passive", "fit_active", "fit_maps",
+    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "passive_residual", "fit_passive", "fit_active", "fit_maps",
     "train", "train_on", "check_fidelity",
 ]
 
@@ -191,18 +191,23 @@ def overall(c_runs: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- passive
+def passive_residual(data: OracleData, lo: LOParams) -> np.ndarray:
+    """V_LO(p) − V_FE(p) (ml) on the oracle's quasi-static inflation curve p (kPa), of the LO
+    passive map of ``lo`` (with γ = 1: the inflation never compresses the wall)."""
+    pressure, volume = (np.asarray(data.passive.traces[k], float) for k in ("P_lv", "V"))
+    return coupling.passive_volume(pressure, cavity_volume(data.geometry), dataclasses.replace(lo, gamma=1.0)) - volume
+
+
 def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:
     """{α, β, a, b, c} with γ = 1 by Levenberg–Marquardt on the oracle's V(p); returns the LO
     parameters (``start`` otherwise) and the RMS volume residual (ml)."""
-    pressure, volume = (np.asarray(data.passive.traces[k], float) for k in ("P_lv", "V"))
-    v0 = cavity_volume(data.geometry)
     base = dataclasses.replace(start, gamma=1.0)
 
     def with_values(x) -> LOParams:
         return dataclasses.replace(base, **dict(zip(PASSIVE_NAMES, map(float, x))))
 
     def residual(x) -> np.ndarray:
-        return coupling.passive_volume(pressure, v0, with_values(x)) - volume
+        return passive_residual(data, with_values(x))
 
     x0 = np.array([getattr(start, n) for n in PASSIVE_NAMES])
     fit = least_squares(residual, x0, method="lm", x_scale=np.abs(x0))
@@ -238,6 +243,10 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
     :func:`fit_active`. :func:`fit_active` fits the training beats; `optim.studies.retune` one
     unseen scenario's beat; :func:`check_fidelity` the beat of a heart's closed loop.
 
+    A candidate whose hearts fail `lvenv.params.validate` (a box of the passive maps can hold
+    maps with a non-monotone Ppass) counts as a failed beat; ``start``'s hearts run in its place,
+    so the batch keeps its size.
+
     C² can have several local minima (seen against the series multi-element model). When a MADS
     run converges (poll size below its minimum) before the budget is spent, MADS restarts from a
     uniformly drawn point of the box with the budget left, and the best point over all runs wins.
@@ -252,8 +261,10 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
         return [dataclasses.replace(start, **dict(zip(names, map(float, row)))) for row in x]
 
     def beats(los: Sequence[LOParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        status, t, v, p = one_beat([h for lo in los for h in hearts(lo)], steps_per_beat, run_beats)
-        return is_usable(status), t, v, p
+        valid = np.array([all(map(_valid, hearts(lo))) for lo in los])
+        members = [h for lo, ok in zip(los, valid) for h in hearts(lo if ok else start)]
+        status, t, v, p = one_beat(members, steps_per_beat, run_beats)
+        return is_usable(status) & np.repeat(valid, len(members) // len(los)), t, v, p
 
     def objective(x: np.ndarray) -> np.ndarray:
         c2 = overall(_beat_c(oracles, *beats(candidates(x)))) ** 2
@@ -270,6 +281,15 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
         x0 = lower + rng.random(len(names)) * (upper - lower)
     lo = _polish(beats, oracles, candidates(best_x[None])[0], names, lower, upper)
     return lo, _beat_c(oracles, *beats([lo]))[0]
+
+
+def _valid(heart: Heart) -> bool:
+    """Whether ``heart`` passes `lvenv.params.validate`."""
+    try:
+        validate(heart)
+    except ValueError:
+        return False
+    return True
 
 
 def _polish(beats: Callable, oracles: Sequence[Mapping[str, np.ndarray]], lo: LOParams, names: tuple[str, ...], lower: np.ndarray,

@@ -20,6 +20,8 @@ fidelity           ``out/diagnosis/diagnosis.md``;                        ``pyth
                    ``candidates_hearts_dt2.5ms.md``,                      ``… hearts --dt 0.0025 --no-unseen``,
                    ``candidates_retune.md``                               ``python scripts/candidate_study.py retune``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
+                   ``out/fit/fidelity_<patient>_<model>.md``;             ``python scripts/fit_patients.py --fidelity``
+                                                                          (or ``--correct-maps K``);
                    ``out/identify/posterior_patients.json`` and           ``python scripts/posterior_patients.py``;
                    ``posterior_pairs.png``;
                    ``out/cohort/*.csv`` with its ``.json``                ``lvenv cohort REPORTS --out out/cohort/…``
@@ -120,6 +122,7 @@ def _fidelity(folder: Path, report_dir: Path, level: int) -> list[str]:
 
 def _inverse(root: Path, report_dir: Path, level: int) -> list[str]:
     return ["#" * level + " Built-in patients", "", *_fits(root, report_dir),
+            "#" * level + " Fidelity of the fits against the FE oracle", "", *_fit_fidelity(root),
             "#" * level + " Posteriors of the built-in patients", "", *_posteriors(root, report_dir),
             "#" * level + " Cohorts", "", *_cohorts(root, report_dir)]
 
@@ -131,6 +134,19 @@ def _fits(root: Path, report_dir: Path) -> list[str]:
     lines = [f"Command: `make run`; results of {_stamp(table)}.", "", "```", table.read_text().rstrip(), "```", ""]
     lines += [_image(p, report_dir) for p in sorted((root / "fit").glob("pv_*.png"))]
     return lines + [""]
+
+
+def _fit_fidelity(root: Path) -> list[str]:
+    """Each table ``fit_patients.py`` wrote of a patient's fidelity checks (one per patient and
+    LO model, each headed by its command)."""
+    files = sorted((root / "fit").glob("fidelity_*.md"))
+    if not files:
+        return _missing("python scripts/fit_patients.py --fidelity")
+    lines = []
+    for path in files:
+        patient, model = path.stem.removeprefix("fidelity_").rsplit("_", 1)
+        lines += [f"**{patient}, {model} heart**, results of {_stamp(path)} (`{path}`).", "", path.read_text().strip(), ""]
+    return lines
 
 
 def _posteriors(root: Path, report_dir: Path) -> list[str]:

@@ -26,13 +26,17 @@ The candidates (`CANDIDATES`):
 * **single-filling**, **series3-filling**: with a filling term: the passive map's linear
   stiffness c (kPa), trained on the quasi-static inflation alone, refitted on the beats beside
   {μ1, μ2, γ, delay} (within [1.05 b²/(3a), 4c], where Ppass stays monotone): whether the
-  error of relaxation and early filling is the passive map's.
+  error of relaxation and early filling is the passive map's;
+* **series3-passive**: series3-onsets with the whole passive map {α, β, a, b, c} refitted on the
+  beats beside {μ1, μ2, γ, delay}, each within a factor `PASSIVE_FREEDOM` of its value fitted to
+  the inflation: nine trained parameters, the most the LO maps can give on the beats, at the
+  cost of the inflation curve (its RMS volume residual: the hearts table's "inflation", and the JSON).
 
 The anatomy sets the onsets (`optim.congruency.wall_arrangement`, at the quantiles of
 `lvenv.presets.onset_quantiles`; `fe_oracle.activation.activation_quantiles` on its oracle mesh:
 meshing and the eikonal solve, seconds, no mechanics). Training refits only {μ1, μ2, γ, delay}
 from the single cell's trained values (`optim.congruency.fit_active` with the arrangement, MADS
-budget ``--budget``); the passive maps stay.
+budget ``--budget``); the passive maps stay, but for the filling and passive candidates.
 
 ``dataset``: each anatomy of the campaign's dataset (`optim.campaign.oracle_data`: its FE
 training beats, no FE run; default: the 5 held-out anatomies and the first 5 training ones), C
@@ -87,9 +91,12 @@ from scripts.train_presets import HEARTS  # noqa: E402
 #: The multi-element candidates: name → (arrangement kind, cells).
 ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), "series3-onsets": ("series", 3),
             "series2-onsets": ("series", 2), "series4-onsets": ("series", 4)}
-#: Candidates with one more trained term: name → (the candidate they extend, "relax" or "filling").
+#: Candidates with more trained terms: name → (the candidate they extend, "relax", "filling" or "passive").
 EXTENDED = {"single-relax": ("single", "relax"), "series3-relax": ("series3-onsets", "relax"),
-            "single-filling": ("single", "filling"), "series3-filling": ("series3-onsets", "filling")}
+            "single-filling": ("single", "filling"), "series3-filling": ("series3-onsets", "filling"),
+            "series3-passive": ("series3-onsets", "passive")}
+#: series3-passive: each passive parameter is searched within its inflation value ÷ and × this factor.
+PASSIVE_FREEDOM = 10.0
 #: The relaxation-term candidates (dataset mode only: the LO cell's τ2 is not an LO parameter).
 RELAXED = tuple(name for name, (_, term) in EXTENDED.items() if term == "relax")
 #: The decay factors r a relaxation-term candidate is trained over (the LO cell's τ2 is the wall's × r).
@@ -129,6 +136,9 @@ def train(data: congruency.OracleData, trained: LOParams, names, budget: int) ->
         elif term == "filling":
             box = {"c": (1.05 * trained.b**2 / (3.0 * trained.a), 4.0 * trained.c)}
             lo, c = congruency.fit_active(data, trained, (*congruency.MAP_NAMES, "c"), budget=budget, arrangement=arr, bounds=box)
+        elif term == "passive":
+            box = {n: tuple(sorted((getattr(trained, n) / PASSIVE_FREEDOM, getattr(trained, n) * PASSIVE_FREEDOM))) for n in congruency.PASSIVE_NAMES}
+            lo, c = congruency.fit_active(data, trained, (*congruency.MAP_NAMES, *congruency.PASSIVE_NAMES), budget=budget, arrangement=arr, bounds=box)
         elif arr is None:
             lo, c = trained, congruency.run_congruency(data, [trained])[0]
         else:
@@ -144,8 +154,11 @@ def window_c2(data: congruency.OracleData, lo: LOParams, arr: Arrangement | None
     return {w: split["C"] ** 2 * share for w, share in split["share"].items()}
 
 
-def _summary(lo: LOParams, c: np.ndarray, seconds: float, r: float) -> dict:
-    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, "relax": r, **{k: getattr(lo, k) for k in (*congruency.MAP_NAMES, "c")}}
+def _summary(data: congruency.OracleData, lo: LOParams, c: np.ndarray, seconds: float, r: float) -> dict:
+    """A trained candidate's C, its maps, and the RMS volume residual of its passive map on the oracle's inflation (ml)."""
+    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, "relax": r,
+            "inflation_rms_ml": float(np.sqrt(np.mean(congruency.passive_residual(data, lo) ** 2))),
+            **{k: getattr(lo, k) for k in (*congruency.MAP_NAMES, *congruency.PASSIVE_NAMES)}}
 
 
 def dataset_mode(args, command: str) -> dict:
@@ -163,7 +176,7 @@ def dataset_mode(args, command: str) -> dict:
         trained = LOParams(**{f.name: row[f.name] for f in dataclasses.fields(LOParams)})
         fits = train(data, trained, args.candidates, args.budget)
         results.append({"id": row["id"], "onsets_ms": [1000 * x for x in congruency.wall_arrangement("series", 5, (1.0, 1.0), data).onsets],
-                        **{name: {**_summary(lo, c, s, r), "window_C2": window_c2(relaxed(data, r), lo, arr)}
+                        **{name: {**_summary(data, lo, c, s, r), "window_C2": window_c2(relaxed(data, r), lo, arr)}
                            for name, (lo, c, arr, s, r) in fits.items()}})
     medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
     windows = {name: {w: float(np.median([r[name]["window_C2"][w] for r in results])) for w in diagnosis.WINDOWS} for name in args.candidates}
@@ -182,13 +195,13 @@ def dataset_mode(args, command: str) -> dict:
     return {"median_C": medians, "median_window_C2": windows, "anatomies": results}
 
 
-def trained_hearts(args, oracle: dict) -> Iterator[tuple[str, Heart, dict]]:
-    """Each built-in heart of ``--hearts``, its name and its ``--candidates`` trained on its own FE
-    training beats (the oracle's options ``oracle``; :func:`train`)."""
+def trained_hearts(args, oracle: dict) -> Iterator[tuple[str, Heart, congruency.OracleData, dict]]:
+    """Each built-in heart of ``--hearts``, its name, its FE training data and its ``--candidates``
+    trained on them (the oracle's options ``oracle``; :func:`train`)."""
     for heart_name in args.hearts:
         heart = getattr(presets, heart_name)()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
-        yield heart_name, heart, train(data, builtin(heart_name).lo, args.candidates, args.budget)
+        yield heart_name, heart, data, train(data, builtin(heart_name).lo, args.candidates, args.budget)
 
 
 def hearts_mode(args, command: str) -> dict:
@@ -196,12 +209,12 @@ def hearts_mode(args, command: str) -> dict:
     oracle = {} if args.dt is None else {"dt": args.dt}
     scenarios = {} if args.no_unseen else UNSEEN
     suffix = "" if args.dt is None else f"_dt{1000 * args.dt:g}ms"
-    for heart_name, heart, fits in trained_hearts(args, oracle):
+    for heart_name, heart, data, fits in trained_hearts(args, oracle):
         entry = {"heart": heart_name, "candidates": {}}
         traces = {}
         for name, (lo, c, arr, seconds, factor) in fits.items():
             rows = generalisation(dataclasses.replace(heart, lo=lo, elements=arr), scenarios, progress=False, **oracle) if scenarios else []
-            entry["candidates"][name] = {"training": _summary(lo, c, seconds, factor),
+            entry["candidates"][name] = {"training": _summary(data, lo, c, seconds, factor),
                                          "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
             traces[name] = rows
         results.append(entry)
@@ -212,16 +225,18 @@ def hearts_mode(args, command: str) -> dict:
                    "given as C / largest pressure error (both %). " if scenarios else "; no unseen scenario run. ")
     lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = {dt})" + unseen_text +
              f"Goals: training C ≤ {100 * GOALS['training_C']:g} %, unseen C ≤ {100 * GOALS['unseen_C']:g} % and largest pressure "
-             f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %.", "",
-             "| " + " | ".join(["heart", "candidate", "training C (① ② ③)", *scenarios, "worst unseen C", "worst pressure error"]) + " |",
-             "|---|---|---|" + "---|" * len(scenarios) + "---|---|"]
+             f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %. Inflation: the RMS volume residual of the candidate's passive map on "
+             "the FE's quasi-static inflation curve.", "",
+             "| " + " | ".join(["heart", "candidate", "training C (① ② ③)", "inflation (ml)", *scenarios, "worst unseen C",
+                                "worst pressure error"]) + " |",
+             "|---|---|---|---|" + "---|" * len(scenarios) + "---|---|"]
     for entry in results:
         for name, cand in entry["candidates"].items():
             unseen = cand["unseen"]
             beats = " ".join(f"{100 * x:.1f}" for x in cand["training"]["C_beats"])
             worst = (f"{100 * max(u['C'] for u in unseen.values()):.1f} | {100 * max(u['max_rel_error_P'] for u in unseen.values()):.0f}"
                      if unseen else "– | –")
-            cells = [entry["heart"], name, f"{100 * cand['training']['C']:.2f} ({beats})",
+            cells = [entry["heart"], name, f"{100 * cand['training']['C']:.2f} ({beats})", f"{cand['training']['inflation_rms_ml']:.2f}",
                      *(f"{100 * unseen[s]['C']:.1f} / {100 * unseen[s]['max_rel_error_P']:.0f}" for s in scenarios), worst]
             lines.append("| " + " | ".join(cells) + " |")
     name = f"candidates_hearts{suffix}"
@@ -233,12 +248,12 @@ def hearts_mode(args, command: str) -> dict:
 
 def retune_mode(args, command: str) -> dict:
     results = []
-    for heart_name, heart, fits in trained_hearts(args, {}):
+    for heart_name, heart, data, fits in trained_hearts(args, {}):
         for name, (lo, c, arr, seconds, factor) in fits.items():
             t0 = time.perf_counter()
             rows = map_transfer(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=congruency.MAP_NAMES, budget=args.budget, progress=False)
             keep = ("C_frozen", "C_retuned", "C_extrapolated", "retuned", "where_frozen", "where_retuned", "interior")
-            results.append({"heart": heart_name, "candidate": name, "training": _summary(lo, c, seconds, factor), "retune_seconds": time.perf_counter() - t0,
+            results.append({"heart": heart_name, "candidate": name, "training": _summary(data, lo, c, seconds, factor), "retune_seconds": time.perf_counter() - t0,
                             "unseen": {r["scenario"]: {k: r[k] for k in keep} for r in rows}})
     lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = 5 ms), then in each "
              "unseen scenario C with its maps frozen → C with {μ1, μ2, γ, delay} refitted on that scenario's own FE beat "

@@ -29,6 +29,10 @@ model's own floor at that heart.
 at the patient's best fit and fitting the patient again with them (``--methods``), then the FE
 check of the last fit: each round costs one FE run (``--fidelity-beats`` beats, about 2 min
 each at h = 6 mm), one refit of the maps and one fit.
+
+With ``--fidelity`` or ``--correct-maps``, each patient's checks are also written as a table,
+with the command that made them, to ``<out>/fidelity_<patient>_<model>.md``, which `lvenv
+report` shows on the inverse-problem page.
 """
 
 from __future__ import annotations
@@ -37,7 +41,10 @@ import argparse
 import contextlib
 import io
 import math
+import shlex
+import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -45,10 +52,10 @@ from lvenv.cli import IMPORTANCE_PER_SAMPLE
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.patients import builtin
 from lvenv.presets import LO_MODELS
-from lvenv.metrics import display, header
+from lvenv.metrics import METRICS, display, header
 from lvenv.plausibility import report, resolve
-from optim.congruency import FIDELITY_TOLERANCE, MAP_NAMES, check_fidelity
-from optim.fit import corrected_fit, fit_patients, synthetic_recovery
+from optim.congruency import FIDELITY_TOLERANCE, MAP_NAMES, Fidelity, check_fidelity
+from optim.fit import FitRow, corrected_fit, fit_patients, synthetic_recovery
 
 
 def _show(name: str, value: float) -> str:
@@ -57,6 +64,15 @@ def _show(name: str, value: float) -> str:
 
 def _param(name: str, value: float) -> str:
     return f"{1000 * value:.0f}" if name == "tau2" else f"{value:.4g}"
+
+
+class Check(NamedTuple):
+    """One fidelity check of a patient's fit as the table shows it: which maps the heart carried
+    (``maps``, in words), the fit (`optim.fit.FitRow`) and the oracle's check (`optim.congruency.Fidelity`)."""
+
+    maps: str
+    fit: FitRow
+    fidelity: Fidelity
 
 
 def print_fits(rows, plausibility: bool = True) -> None:
@@ -189,41 +205,88 @@ def main() -> None:
     print(f"\nworst mismatch {100 * worst:.2f} % (goal < 3 %); plots in {a.out}/"
           if math.isfinite(worst) else "\nsome fit found no valid point")
     if a.correct_maps:
-        print_corrected(rows, a)
+        checks = print_corrected(rows, a)
     elif a.fidelity:
-        print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model, a.retune_maps)
+        checks = print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model, a.retune_maps)
+    else:
+        return
+    command = shlex.join(["python", "scripts/fit_patients.py", *sys.argv[1:]])
+    for patient, patient_checks in checks.items():
+        path = Path(a.out, f"fidelity_{patient}_{a.model}.md")
+        path.write_text(fidelity_markdown(patient_checks, command, a.fidelity_mesh, a.fidelity_beats))
+        print(f"{patient}: the checks' table is in {path}")
+
+
+def _unit(name: str) -> str:
+    """The unit of FE − LO of target ``name`` in the fidelity table."""
+    return "%" if FIDELITY_TOLERANCE[name][0] == "rel" else "points" if name == "EF" else METRICS[name].display_units
+
+
+def _signed(name: str, diff: float) -> str:
+    """FE − LO of target ``name``, signed, in :func:`_unit`."""
+    return f"{100 * diff:+.2f}" if _unit(name) in ("%", "points") else f"{METRICS[name].to_display(diff):+.1f}"
 
 
 def _difference(name: str, diff: float) -> str:
-    """FE − LO of target ``name`` as the fidelity table shows it (% for pressures, points for EF)."""
-    if FIDELITY_TOLERANCE[name][0] == "rel":
-        return f"{100 * diff:+.2f} %"
-    return f"{100 * diff:+.2f} points" if name == "EF" else _show(name, diff)
+    """FE − LO of target ``name`` as the fidelity checks show it, with its unit."""
+    return f"{_signed(name, diff)} {_unit(name)}"
 
 
-def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False) -> None:
+def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False) -> dict[str, list[Check]]:
     """The 3-D oracle at each patient's best fit (of the LO heart ``model``): LO, FE and their
-    difference per target; with ``retune_maps`` also FE − LO with the maps refitted on that FE beat."""
+    difference per target; with ``retune_maps`` also FE − LO with the maps refitted on that FE beat.
+    Returns each patient's check."""
+    checks = {}
     for patient in dict.fromkeys(r.patient for r in rows):
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
         heart = builtin(patient, model).heart.replace(**best.parameters)
         rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats, retune=MAP_NAMES if retune_maps else ())
         print_check(f"fidelity of {patient} ({best.method} fit) against the 3-D oracle (h = {mesh_size:g} mm, {beats} beats)",
                     {n: getattr(heart.lo, n) for n in MAP_NAMES}, rep)
+        checks[patient] = [Check("trained", best, rep)]
+    return checks
 
 
-def print_corrected(rows, a) -> None:
-    """``--correct-maps``: each patient's rounds of `optim.fit.corrected_fit` from its best fit in ``rows``."""
+def print_corrected(rows, a) -> dict[str, list[Check]]:
+    """``--correct-maps``: each patient's rounds of `optim.fit.corrected_fit` from its best fit in
+    ``rows``; returns each patient's checks, one per round."""
+    checks = {}
     for patient in dict.fromkeys(r.patient for r in rows):
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
         rounds = corrected_fit(builtin(patient, a.model), a.methods, a.correct_maps, first=best, beats=a.fidelity_beats,
                                num_envs=a.num_envs, budget=a.budget or 480, seed=a.seed, steps_per_beat=a.steps_per_beat,
                                plausibility=a.plausibility, mesh_size=a.fidelity_mesh)
+        checks[patient] = []
         for r, step in enumerate(rounds):
             source = "trained" if r == 0 else f"refitted on round {r - 1}'s FE beat"
+            checks[patient].append(Check(f"round {r}: {source}", step.fit, step.fidelity))
             print_check(f"{patient}, round {r} (maps {source}; {step.fit.method} fit, mismatch {100 * step.fit.mismatch:.2f} %) "
                         f"against the 3-D oracle (h = {a.fidelity_mesh:g} mm, {a.fidelity_beats} beats)", step.maps, step.fidelity,
                         step.fit.parameters)
+    return checks
+
+
+def fidelity_markdown(checks: list[Check], command: str, mesh_size: float, beats: int) -> str:
+    """One patient's fidelity ``checks`` as a markdown table: per check C and FE − LO per target
+    (OUT: outside `optim.congruency.FIDELITY_TOLERANCE`), and the fitted parameters; a check with
+    maps refitted on its FE beat has a second row with them. Headed by ``command``."""
+    names = list(checks[0].fit.parameters)
+    heads = ["maps", "fit", "C", *(f"{METRICS[t].label} ({_unit(t)})" for t in FIDELITY_TOLERANCE),
+             *(f"{n} ({'ms' if n == 'tau2' else ACTION_BOUNDS[n].units})" for n in names)]
+    tolerance = ", ".join(f"{METRICS[t].label} {_signed(t, bound)[1:]} {_unit(t)}" for t, (_, bound) in FIDELITY_TOLERANCE.items())
+    lines = [f"Command: `{command}`. FE − LO at each fit (h = {mesh_size:g} mm, the last of {beats} FE beats against the LO "
+             f"steady state); OUT: outside ± ({tolerance}).", "",
+             "| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
+    for check in checks:
+        fitted = [_param(n, check.fit.parameters[n]) for n in names]
+        how = f"{check.fit.method}, mismatch {100 * check.fit.mismatch:.2f} %"
+        compared = [(check.maps, check.fidelity.C, check.fidelity.rows, check.fidelity.within)]
+        if (again := check.fidelity.retuned) is not None:
+            compared.append(("refitted on this FE beat", again["C"], again["rows"], again["within"]))
+        for maps, c, diffs, within in compared:
+            cells = [f"{_signed(t, diffs[t][2])}{'' if within[t] else ' OUT'}" for t in FIDELITY_TOLERANCE]
+            lines.append("| " + " | ".join([maps, how, f"{100 * c:.2f} %", *cells, *fitted]) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def print_check(title: str, maps: dict, rep, parameters: dict | None = None) -> None:

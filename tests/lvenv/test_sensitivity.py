@@ -51,13 +51,14 @@ def _relative_error(ad, fd):
     return np.abs(ad - fd) / np.maximum(np.abs(fd), 1e-2 * scale)
 
 
-def test_derivatives_match_central_differences_closed_and_open_loop_and_in_a_batch():
-    """Over 20 random hearts (N, HF, open loop; heart rate and atrial pressure among the
+@pytest.mark.parametrize("count", [6, pytest.param(20, marks=pytest.mark.slow)])
+def test_derivatives_match_central_differences_closed_and_open_loop_and_in_a_batch(count):
+    """Over ``count`` random hearts (N, HF, open loop; heart rate and atrial pressure among the
     parameters) every derivative agrees with the central difference to 1e-4 relative wherever
     the metric is smooth at the difference's scale: where the differences at steps h and 2h agree
     to 1e-4 (across a kink, where a valve event crosses an integrator step, they differ by
     O(1)). Such points are rare, so at most 2 % of the entries may be set aside."""
-    hearts = _random_hearts()
+    hearts = _random_hearts(count)
     batch = lvenv.jacobian(hearts, wrt=WRT, metrics=METRICS, steps_per_beat=STEPS, rtol=1e-12, max_beats=3000)
     assert batch.values.shape == (len(hearts), len(METRICS), len(WRT)) and list(batch.status) == ["ok"] * len(hearts)
     fd, fd_2h = _central_differences(hearts, WRT, METRICS)

@@ -106,7 +106,8 @@ def test_fidelity_refits_the_maps_on_the_oracle_beat_and_compares_again(tmp_path
 def test_fit_active_searches_a_further_lo_parameter_inside_the_box_it_is_given():
     """``bounds`` adds a parameter to the search: against beats the single cell generated with a
     20 % stiffer passive map, fitting {μ2, c} from the trained c recovers that c; a box that
-    excludes it keeps c at the box's edge."""
+    excludes it keeps c at the box's edge; a box of b two thirds of which makes Ppass non-monotone
+    (maps `lvenv.simulate` refuses) is searched without an error, and b is found."""
     import fe_oracle
 
     truth = dataclasses.replace(presets.N_LO, c=1.2 * presets.N_LO.c)
@@ -118,6 +119,10 @@ def test_fit_active_searches_a_further_lo_parameter_inside_the_box_it_is_given()
     assert lo.c == pytest.approx(truth.c, rel=1e-3) and np.all(c < 1e-3)
     capped, _ = cg.fit_active(data, presets.N_LO, ("mu2", "c"), budget=32, steps_per_beat=500, bounds={"c": (0.5 * truth.c, 0.9 * truth.c)})
     assert capped.c == pytest.approx(0.9 * truth.c, rel=1e-3)
+    edge = -np.sqrt(3.0 * truth.a * truth.c)  # below it, Ppass is not monotone and the heart is refused
+    lo, c = cg.fit_active(data, dataclasses.replace(presets.N_LO, c=truth.c), ("mu2", "b"), budget=96, steps_per_beat=500,
+                          bounds={"b": (3.0 * edge, 0.0)})
+    assert lo.b == pytest.approx(truth.b, rel=1e-3) and np.all(c < 1e-3), "a box holding refused maps still finds the truth"
 
 
 def test_a_multi_element_candidate_is_trained_against_beats_it_generated():

@@ -150,3 +150,16 @@ def test_corrected_fit_refits_the_maps_on_the_oracle_beat_and_the_next_fit_match
     assert f"round 0: C {100 * rounds[0].fidelity.C:.2f} %, OUTSIDE tolerance" in text
     assert f"mu2 {rounds[1].maps['mu2']:.4g}" in text and f"C {100 * rounds[0].fidelity.retuned['C']:.2f} %" in text
     assert text.count("| refitted maps: FE − LO") == len(rounds[0].fidelity.rows)
+    table = script.fidelity_markdown([script.Check(f"round {r}", step.fit, step.fidelity) for r, step in enumerate(rounds)],
+                                     "python scripts/fit_patients.py --correct-maps 1", 6.0, 5)
+    lines = table.splitlines()
+    assert lines[0].startswith("Command: `python scripts/fit_patients.py --correct-maps 1`. FE − LO at each fit (h = 6 mm, the last of 5")
+    head, rule, *body = [line for line in lines if line.startswith("|")]
+    assert len(body) == 3, "round 0, round 0 with the maps refitted on its FE beat, round 1"
+    assert all(len(row.split(" | ")) == len(head.split(" | ")) == rule.count("---") for row in body)
+    for row, c, within in ((body[0], rounds[0].fidelity.C, rounds[0].fidelity.within),
+                           (body[1], rounds[0].fidelity.retuned["C"], rounds[0].fidelity.retuned["within"]),
+                           (body[2], rounds[1].fidelity.C, rounds[1].fidelity.within)):
+        assert f" | {100 * c:.2f} % | " in row and row.count(" OUT") == list(within.values()).count(False), row
+    assert body[1].startswith("| refitted on this FE beat | cma, mismatch ") and body[2].startswith("| round 1 | cma, mismatch ")
+    assert f" | {1000 * rounds[1].fit.parameters['tau2']:.0f} | " in body[2]
