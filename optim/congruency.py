@@ -244,8 +244,9 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
     unseen scenario's beat; :func:`check_fidelity` the beat of a heart's closed loop.
 
     A candidate whose hearts fail `lvenv.params.validate` (a box of the passive maps can hold
-    maps with a non-monotone Ppass) counts as a failed beat; ``start``'s hearts run in its place,
-    so the batch keeps its size.
+    maps with a non-monotone Ppass) counts as a failed beat: when `lvenv.simulate` refuses a
+    batch, its candidates are checked one by one and ``start``'s hearts run in place of those
+    refused, so the batch keeps its size.
 
     C² can have several local minima (seen against the series multi-element model). When a MADS
     run converges (poll size below its minimum) before the budget is spent, MADS restarts from a
@@ -261,10 +262,15 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
         return [dataclasses.replace(start, **dict(zip(names, map(float, row)))) for row in x]
 
     def beats(los: Sequence[LOParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        valid = np.array([all(map(_valid, hearts(lo))) for lo in los])
-        members = [h for lo, ok in zip(los, valid) for h in hearts(lo if ok else start)]
-        status, t, v, p = one_beat(members, steps_per_beat, run_beats)
-        return is_usable(status) & np.repeat(valid, len(members) // len(los)), t, v, p
+        built = [hearts(lo) for lo in los]
+        valid = np.ones(len(los), bool)
+        try:
+            status, t, v, p = one_beat([h for members in built for h in members], steps_per_beat, run_beats)
+        except InputError:  # `lvenv.simulate` refuses the whole batch: find the candidates it refuses
+            valid = np.array([all(map(_valid, members)) for members in built])
+            fallback = hearts(start)
+            status, t, v, p = one_beat([h for members, ok in zip(built, valid) for h in (members if ok else fallback)], steps_per_beat, run_beats)
+        return is_usable(status) & np.repeat(valid, len(built[0])), t, v, p
 
     def objective(x: np.ndarray) -> np.ndarray:
         c2 = overall(_beat_c(oracles, *beats(candidates(x)))) ** 2

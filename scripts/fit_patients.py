@@ -66,6 +66,11 @@ def _param(name: str, value: float) -> str:
     return f"{1000 * value:.0f}" if name == "tau2" else f"{value:.4g}"
 
 
+def _param_head(name: str) -> str:
+    """The column head of fitted parameter ``name``, with the units :func:`_param` shows it in."""
+    return f"{name} ({'ms' if name == 'tau2' else ACTION_BOUNDS[name].units})"
+
+
 class Check(NamedTuple):
     """One fidelity check of a patient's fit as the table shows it: which maps the heart carried
     (``maps``, in words), the fit (`optim.fit.FitRow`) and the oracle's check (`optim.congruency.Fidelity`)."""
@@ -78,7 +83,7 @@ class Check(NamedTuple):
 def print_fits(rows, plausibility: bool = True) -> None:
     names = list(rows[0].parameters)
     targets = list(rows[0].targets)
-    heads = [f"{n} ({'ms' if n == 'tau2' else ACTION_BOUNDS[n].units})" for n in names]
+    heads = [_param_head(n) for n in names]
     tcols = [f"{header(t)} fit/target [err %]" for t in targets]
     print("patient        method   " + " | ".join(heads))
     for r in rows:
@@ -120,7 +125,7 @@ def print_posteriors(patients, n_samples: int, seed: int, importance: int) -> No
 
     answers = {a.patient: a for a in identify_patients([builtin(p) for p in patients], n_samples, seed=seed, importance=importance)}
     names = list(ACTION_BOUNDS)
-    heads = [f"{n} ({'ms' if n == 'tau2' else ACTION_BOUNDS[n].units})" for n in names]
+    heads = [_param_head(n) for n in names]
     cells = {p: [f"{_param(n, a.posterior.median[n])} [{_param(n, a.posterior.interval_90[n][0])}, {_param(n, a.posterior.interval_90[n][1])}]"
                  for n in names] if a.posterior is not None else ["—"] * len(names) for p, a in answers.items()}
     widths = [max(len(h), *(len(c[j]) for c in cells.values())) for j, h in enumerate(heads)]
@@ -272,7 +277,7 @@ def fidelity_markdown(checks: list[Check], command: str, mesh_size: float, beats
     maps refitted on its FE beat has a second row with them. Headed by ``command``."""
     names = list(checks[0].fit.parameters)
     heads = ["maps", "fit", "C", *(f"{METRICS[t].label} ({_unit(t)})" for t in FIDELITY_TOLERANCE),
-             *(f"{n} ({'ms' if n == 'tau2' else ACTION_BOUNDS[n].units})" for n in names)]
+             *map(_param_head, names)]
     tolerance = ", ".join(f"{METRICS[t].label} {_signed(t, bound)[1:]} {_unit(t)}" for t, (_, bound) in FIDELITY_TOLERANCE.items())
     lines = [f"Command: `{command}`. FE − LO at each fit (h = {mesh_size:g} mm, the last of {beats} FE beats against the LO "
              f"steady state); OUT: outside ± ({tolerance}).", "",
