@@ -102,7 +102,7 @@ def _markdown_file(path: Path, command: str, report_dir: Path, images: tuple[Pat
 #: The fidelity section's parts: heading, results file, the command that writes it, its figure.
 FIDELITY_PARTS = (
     ("By phase of the beat, over the campaign's anatomies", "diagnosis.md", "python scripts/congruency_diagnosis.py", None),
-    ("The wall's tension against the one LO cell", "wall.md", "python scripts/wall_diagnosis.py", "wall.png"),
+    ("The wall's tension and stretch against the LO cells", "wall.md", "python scripts/wall_diagnosis.py", "wall.png"),
     ("Candidate low-order hearts on the campaign's anatomies", "candidates_dataset.md", "python scripts/candidate_study.py dataset", None),
     ("Candidate low-order hearts on N and HF, training and unseen scenarios", "candidates_hearts.md", "python scripts/candidate_study.py hearts",
      "candidates_hearts.png"),

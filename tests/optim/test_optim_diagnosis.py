@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import fe_oracle
-from lvenv import presets
+from lvenv import coupling, presets
 from optim import congruency, diagnosis
 
 
@@ -36,3 +36,44 @@ def test_windows_split_c_squared_exactly_and_a_pure_delay_is_timing(beat):
     assert out["timing_share"] > 0.99 and out["C_shifted"] < 0.05 * out["C"]
     scaled = diagnosis.decompose(tr, tr["t"], 1.05 * tr["V"][None], tr["P_lv"][None])
     assert abs(scaled["shift_s"]) <= 0.005 and scaled["timing_share"] < 0.2  # an amplitude error is not timing
+
+
+
+def _wall_diagnosis():
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("wall_diagnosis_script", Path(__file__).resolve().parents[2] / "scripts" / "wall_diagnosis.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_cell_driven_by_an_lo_beats_own_stretch_gives_back_its_tension_and_the_stretch_map_its_slope():
+    """scripts/wall_diagnosis.py: the Land cell driven by the trained LO heart's own λ(t), sampled
+    every 5 ms as the FE beat is, gives back that heart's Ta(t) (the driven test's only error is
+    its integration), and a 10 ms later onset does not; a stretch trace that is a line in V plus
+    a pressure term is read back exactly by the stretch-map plane and not by a line in V."""
+    from lvenv.geometry import cavity_volume
+    from lvenv.simulation import simulate
+    from lvenv.trained import builtin
+
+    wall = _wall_diagnosis()
+    trained = builtin("normal")
+    lo, v0 = trained.lo, float(cavity_volume(trained.geometry))
+    sim = simulate(trained.heart(presets.training_circulation(2)), beats=1, steps_per_beat=1000)
+    t, v, p = (np.asarray(getattr(sim.traces, k), float)[::5] for k in ("t", "V", "P_lv"))
+    assert np.diff(t).max() == pytest.approx(0.005, rel=0.05)
+    ta = (p - np.asarray(coupling.passive_pressure(v, v0, lo))) / lo.mu2
+    lam = np.asarray(coupling.stretch(v, v0, lo))[:, None]
+    driven = np.asarray(wall.driven_tension(t, lam, np.array([lo.delay])))[:, 0]
+    late = np.asarray(wall.driven_tension(t, lam, np.array([lo.delay + 0.01])))[:, 0]
+    error = lambda x: np.linalg.norm(x - ta) / np.linalg.norm(ta)
+    assert error(driven) < 0.01 and error(late) > 0.05, (error(driven), error(late))
+
+    x = v / v0 - 1.0
+    line = 1.0 + 0.2 * x - 0.004 * p
+    fit = wall.stretch_map(x, p, line, diagnosis.window_masks(t, {"mvc": 0.05, "avo": 0.1, "avc": 0.4, "mvo": 0.5}))
+    assert fit["rms_plane"] < 1e-12 and fit["dlam_dP_per_kPa"] == pytest.approx(-0.004, rel=1e-9)
+    assert fit["rms_poly"] <= fit["rms_linear"] and fit["rms_linear"] > 1e-3
+    assert sum(fit["share"].values()) == pytest.approx(1.0) and fit["swing"]["upstroke"] > 0.0
