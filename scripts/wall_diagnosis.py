@@ -258,7 +258,8 @@ def main() -> None:
 
 
 def markdown(rows: list[dict], command: str) -> str:
-    """The tables of wall.md: tension timing per trace, and the fit of the FE pressure to each quantile."""
+    """The tables of wall.md: tension timing per trace, the fit of the FE pressure to each quantile, the gain per
+    window, the stretch maps of the wall, the LO cells' stretch range and the driven cell."""
     traces = ("wall_median", "wall_mean", "fe_implied", "lo_cell")
     lines = [f"Made by `{command}` (its FE beats are kept in `wall/` beside this page). Times in ms after the beat's onset.", "",
              "| heart | condition | C (%) | trace | peak | 50 % rise | 50 % fall | 10 % fall |", "|---|---|---|---|---|---|---|---|"]
