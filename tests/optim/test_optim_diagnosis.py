@@ -1,5 +1,5 @@
 """The congruency diagnosis: valve events as lvenv.events finds them, windows that split C²
-exactly, and a pure delay recognised as timing."""
+exactly, and a pure delay recognised as timing; the wall diagnosis's driven cell and stretch maps."""
 
 import numpy as np
 import pytest
@@ -36,7 +36,6 @@ def test_windows_split_c_squared_exactly_and_a_pure_delay_is_timing(beat):
     assert out["timing_share"] > 0.99 and out["C_shifted"] < 0.05 * out["C"]
     scaled = diagnosis.decompose(tr, tr["t"], 1.05 * tr["V"][None], tr["P_lv"][None])
     assert abs(scaled["shift_s"]) <= 0.005 and scaled["timing_share"] < 0.2  # an amplitude error is not timing
-
 
 
 def _wall_diagnosis():
