@@ -214,12 +214,12 @@ def compare(name: str, condition: int, traces: dict[str, np.ndarray], meta: dict
                       "lam_lo_range": [float(lam_lo[m].min()), float(lam_lo[m].max())] if m.any() else None}
     c = float(np.sqrt(congruency.congruency(traces, t_lo, v_lo[None], p_lo[None])[0]))
     fits, stretch = {}, {}
-    x = np.asarray(traces["V"], float) / v0 - 1.0
+    x, pressure = np.asarray(traces["V"], float) / v0 - 1.0, np.asarray(traces["P_lv"], float)
     for j, label in enumerate([f"q{round(100 * q):02d}" for q in QUANTILES] + ["mean"]):
         q = ta_q[:, j]
         fitted = float(np.dot(q, ta_fe) / np.dot(q, q))
         fits[label] = {"gain": fitted, "rel_residual": float(np.linalg.norm(ta_fe - fitted * q) / np.linalg.norm(ta_fe))}
-        stretch[label] = stretch_map(x, np.asarray(traces["P_lv"], float), lam_q[:, j], masks)
+        stretch[label] = stretch_map(x, pressure, lam_q[:, j], masks)
     series = builtin(f"{name}_series3")
     series_heart = series.heart(circulation=presets.training_circulation(condition))
     lo_range = {"single": [float(lam_lo.min()), float(lam_lo.max())],

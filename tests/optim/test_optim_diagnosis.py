@@ -7,6 +7,7 @@ import pytest
 import fe_oracle
 from lvenv import coupling, presets
 from optim import congruency, diagnosis
+from scripts import wall_diagnosis
 
 
 @pytest.fixture(scope="module")
@@ -38,16 +39,6 @@ def test_windows_split_c_squared_exactly_and_a_pure_delay_is_timing(beat):
     assert abs(scaled["shift_s"]) <= 0.005 and scaled["timing_share"] < 0.2  # an amplitude error is not timing
 
 
-def _wall_diagnosis():
-    import importlib.util
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location("wall_diagnosis_script", Path(__file__).resolve().parents[2] / "scripts" / "wall_diagnosis.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_a_cell_driven_by_an_lo_beats_own_stretch_gives_back_its_tension_and_the_stretch_map_its_slope():
     """scripts/wall_diagnosis.py: the Land cell driven by the trained LO heart's own λ(t), sampled
     every 5 ms as the FE beat is, gives back that heart's Ta(t) (the driven test's only error is
@@ -57,7 +48,6 @@ def test_a_cell_driven_by_an_lo_beats_own_stretch_gives_back_its_tension_and_the
     from lvenv.simulation import simulate
     from lvenv.trained import builtin
 
-    wall = _wall_diagnosis()
     trained = builtin("normal")
     lo, v0 = trained.lo, float(cavity_volume(trained.geometry))
     sim = simulate(trained.heart(presets.training_circulation(2)), beats=1, steps_per_beat=1000)
@@ -65,14 +55,14 @@ def test_a_cell_driven_by_an_lo_beats_own_stretch_gives_back_its_tension_and_the
     assert np.diff(t).max() == pytest.approx(0.005, rel=0.05)
     ta = (p - np.asarray(coupling.passive_pressure(v, v0, lo))) / lo.mu2
     lam = np.asarray(coupling.stretch(v, v0, lo))[:, None]
-    driven = np.asarray(wall.driven_tension(t, lam, np.array([lo.delay])))[:, 0]
-    late = np.asarray(wall.driven_tension(t, lam, np.array([lo.delay + 0.01])))[:, 0]
+    driven = np.asarray(wall_diagnosis.driven_tension(t, lam, np.array([lo.delay])))[:, 0]
+    late = np.asarray(wall_diagnosis.driven_tension(t, lam, np.array([lo.delay + 0.01])))[:, 0]
     error = lambda x: np.linalg.norm(x - ta) / np.linalg.norm(ta)
     assert error(driven) < 0.01 and error(late) > 0.05, (error(driven), error(late))
 
     x = v / v0 - 1.0
     line = 1.0 + 0.2 * x - 0.004 * p
-    fit = wall.stretch_map(x, p, line, diagnosis.window_masks(t, {"mvc": 0.05, "avo": 0.1, "avc": 0.4, "mvo": 0.5}))
+    fit = wall_diagnosis.stretch_map(x, p, line, diagnosis.window_masks(t, {"mvc": 0.05, "avo": 0.1, "avc": 0.4, "mvo": 0.5}))
     assert fit["rms_plane"] < 1e-12 and fit["dlam_dP_per_kPa"] == pytest.approx(-0.004, rel=1e-9)
     assert fit["rms_poly"] <= fit["rms_linear"] and fit["rms_linear"] > 1e-3
     assert sum(fit["share"].values()) == pytest.approx(1.0) and fit["swing"]["upstroke"] > 0.0

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,9 +14,9 @@ from lvenv.identification import DEFAULT_ACTION_PARAMS, ParameterSpace
 from lvenv.patients import builtin
 from optim.congruency import MAP_NAMES
 from optim.fit import corrected_fit, fit_patients, null_directions, synthetic_recovery
+from scripts import fit_patients as script
 
 TARGETS = ("EF", "ET", "IVRT", "P_ao_pulse")
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "fit_patients.py"
 
 
 @pytest.fixture(scope="module")
@@ -44,9 +42,6 @@ def test_fit_drops_the_mismatch_and_writes_a_pv_plot(rows):
 
 
 def test_script_prints_the_table_in_mmhg_and_ms(rows, capsys):
-    spec = importlib.util.spec_from_file_location("fit_patients_script", SCRIPT)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
     script.print_fits(rows[0])
     text = capsys.readouterr().out
     assert "tau2 (ms)" in text and "ET (ms)" in text and "P_ao pulse (mmHg)" in text
@@ -69,9 +64,6 @@ def test_lm_rows_sit_beside_the_env_methods_warm_and_as_fit_lm_alone_gives_them(
     np.testing.assert_array_equal(row.history.f, alone.history.f)
     assert row.mismatch < row.history.mismatch[0], "it improved on the patient's own values (start 0's first point)"
     assert row.compile_time > 0 and row.wall_time > 0
-    spec = importlib.util.spec_from_file_location("fit_patients_script", SCRIPT)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
     script.print_fits([row])
     text = capsys.readouterr().out
     assert re.search(r"^normal +lm +\d", text, re.M), "the lm row of the parameter table"
@@ -142,9 +134,6 @@ def test_corrected_fit_refits_the_maps_on_the_oracle_beat_and_the_next_fit_match
         assert rounds[1].maps[name] == pytest.approx(getattr(truth, name), rel=0.02), name
     assert rounds[0].fidelity.C > 0.1 and rounds[0].fidelity.retuned["C"] < 0.02
     assert rounds[1].fidelity.C < min(0.02, rounds[0].fidelity.C / 10), (rounds[0].fidelity.C, rounds[1].fidelity.C)
-    spec = importlib.util.spec_from_file_location("fit_patients_script", SCRIPT)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
     script.print_check("round 0", rounds[0].maps, rounds[0].fidelity)
     text = capsys.readouterr().out
     assert f"round 0: C {100 * rounds[0].fidelity.C:.2f} %, OUTSIDE tolerance" in text
