@@ -57,7 +57,7 @@ from scipy.optimize import least_squares
 import fe_oracle
 from fe_oracle import cache as oracle_cache
 from fe_oracle.cases import Passive
-from lvenv import coupling, lo_model, presets
+from lvenv import coupling, lo_model, multielement, presets
 from lvenv.geometry import Geometry, cavity_volume
 from lvenv.params import Arrangement, CellParams, Heart, LOParams, validate
 from lvenv.simulation import simulate
@@ -191,11 +191,15 @@ def overall(c_runs: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- passive
-def passive_residual(data: OracleData, lo: LOParams) -> np.ndarray:
+def passive_residual(data: OracleData, lo: LOParams, arrangement: Arrangement | None = None) -> np.ndarray:
     """V_LO(p) − V_FE(p) (ml) on the oracle's quasi-static inflation curve p (kPa), of the LO
-    passive map of ``lo`` (with γ = 1: the inflation never compresses the wall)."""
+    passive map of ``lo`` (with γ = 1: the inflation never compresses the wall), or of the
+    multi-element heart ``arrangement`` with those maps (:func:`lvenv.multielement.passive_volume`:
+    cells in series of unequal weights inflate unlike one cell)."""
     pressure, volume = (np.asarray(data.passive.traces[k], float) for k in ("P_lv", "V"))
-    return coupling.passive_volume(pressure, cavity_volume(data.geometry), dataclasses.replace(lo, gamma=1.0)) - volume
+    lo, v0 = dataclasses.replace(lo, gamma=1.0), cavity_volume(data.geometry)
+    lv = coupling.passive_volume(pressure, v0, lo) if arrangement is None else multielement.passive_volume(pressure, v0, lo, arrangement)
+    return lv - volume
 
 
 def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:

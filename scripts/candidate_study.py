@@ -27,6 +27,13 @@ The candidates (`CANDIDATES`):
   stiffness c (kPa), trained on the quasi-static inflation alone, refitted on the beats beside
   {μ1, μ2, γ, delay} (within [1.05 b²/(3a), 4c], where Ppass stays monotone): whether the
   error of relaxation and early filling is the passive map's;
+* **series3-weights**: series3-onsets with unequal cells: the cells' weights w_ξ (each cell's
+  passive stiffness and strength, `lvenv.multielement`: a region of the wall that is more or less
+  loaded per unit of cavity pressure) linear over (1 − s, 1 + s), for each spread s of
+  `WEIGHT_SPREADS` and each of the 6 ways to give the three onsets to the three cells, with
+  {μ1, μ2, γ, delay} refitted at each (each fit logged); the best of the 18 is the candidate
+  (about 4 min per heart). A fitted spread and order bound what volume shares set from the
+  wall's stretch distribution could do;
 * **series3-passive**: series3-onsets with the whole passive map {α, β, a, b, c} refitted on the
   beats beside {μ1, μ2, γ, delay}, each within a factor `PASSIVE_FREEDOM` of its value fitted to
   the inflation: nine trained parameters, the most the LO maps can give on the beats, at the
@@ -70,6 +77,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import pathlib
 import sys
@@ -91,16 +99,18 @@ from scripts.train_presets import HEARTS  # noqa: E402
 #: The multi-element candidates: name → (arrangement kind, cells).
 ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), "series3-onsets": ("series", 3),
             "series2-onsets": ("series", 2), "series4-onsets": ("series", 4)}
-#: Candidates with more trained terms: name → (the candidate they extend, "relax", "filling" or "passive").
+#: Candidates with more trained terms: name → (the candidate they extend, "relax", "filling", "weights" or "passive").
 EXTENDED = {"single-relax": ("single", "relax"), "series3-relax": ("series3-onsets", "relax"),
             "single-filling": ("single", "filling"), "series3-filling": ("series3-onsets", "filling"),
-            "series3-passive": ("series3-onsets", "passive")}
+            "series3-weights": ("series3-onsets", "weights"), "series3-passive": ("series3-onsets", "passive")}
 #: series3-passive: each passive parameter is searched within its inflation value ÷ and × this factor.
 PASSIVE_FREEDOM = 10.0
 #: The relaxation-term candidates (dataset mode only: the LO cell's τ2 is not an LO parameter).
 RELAXED = tuple(name for name, (_, term) in EXTENDED.items() if term == "relax")
 #: The decay factors r a relaxation-term candidate is trained over (the LO cell's τ2 is the wall's × r).
 RELAX_GRID = (0.85, 0.9, 0.95, 1.0, 1.05)
+#: The spreads s a weights candidate is trained over (its cells' w_ξ linear over 1 − s .. 1 + s).
+WEIGHT_SPREADS = (0.1, 0.2, 0.3)
 CANDIDATES = ("single", *ARRANGED, *EXTENDED)
 #: The issue's goals: C on the training beats, C in an unseen scenario, its largest pressure error.
 GOALS = {"training_C": 0.02, "unseen_C": 0.05, "unseen_pressure_error": 0.10}
@@ -133,6 +143,16 @@ def train(data: congruency.OracleData, trained: LOParams, names, budget: int) ->
             fits = {r: congruency.fit_active(relaxed(data, r), trained, congruency.MAP_NAMES, budget=budget, arrangement=arr) for r in RELAX_GRID}
             r = min(fits, key=lambda k: congruency.overall(fits[k][1]))
             lo, c = fits[r]
+        elif term == "weights":
+            arrs = [dataclasses.replace(arr, spread=(1.0 - s, 1.0 + s), onsets=tuple(arr.onsets[i] for i in order))
+                    for order in itertools.permutations(range(arr.n_elements)) for s in WEIGHT_SPREADS]
+            fits = []
+            for a in arrs:
+                fits.append(congruency.fit_active(data, trained, congruency.MAP_NAMES, budget=budget, arrangement=a))
+                cells = ", ".join(f"{w:.1f} at {1000 * t:+.0f} ms" for w, t in zip(a.element_values(), a.element_onsets()))
+                print(f"{data.geometry} {name}: w {cells}: C {100 * congruency.overall(fits[-1][1]):.2f} %", file=sys.stderr, flush=True)
+            best = min(range(len(fits)), key=lambda i: congruency.overall(fits[i][1]))
+            (lo, c), arr = fits[best], arrs[best]
         elif term == "filling":
             box = {"c": (1.05 * trained.b**2 / (3.0 * trained.a), 4.0 * trained.c)}
             lo, c = congruency.fit_active(data, trained, (*congruency.MAP_NAMES, "c"), budget=budget, arrangement=arr, bounds=box)
@@ -154,10 +174,12 @@ def window_c2(data: congruency.OracleData, lo: LOParams, arr: Arrangement | None
     return {w: split["C"] ** 2 * share for w, share in split["share"].items()}
 
 
-def _summary(data: congruency.OracleData, lo: LOParams, c: np.ndarray, seconds: float, r: float) -> dict:
-    """A trained candidate's C, its maps, and the RMS volume residual of its passive map on the oracle's inflation (ml)."""
-    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, "relax": r,
-            "inflation_rms_ml": float(np.sqrt(np.mean(congruency.passive_residual(data, lo) ** 2))),
+def _summary(data: congruency.OracleData, lo: LOParams, c: np.ndarray, seconds: float, r: float, arr: Arrangement | None) -> dict:
+    """A trained candidate's C, its maps, its cells' weights w_ξ and onsets (ms; cells in series),
+    and the RMS volume residual of its passive heart on the oracle's inflation (ml)."""
+    cells = {} if arr is None or arr.kind != "series" else {"weights": arr.element_values().tolist(), "cell_onsets_ms": (1000 * arr.element_onsets()).tolist()}
+    return {"C": float(congruency.overall(c)), "C_beats": c.tolist(), "seconds": seconds, "relax": r, **cells,
+            "inflation_rms_ml": float(np.sqrt(np.mean(congruency.passive_residual(data, lo, arr) ** 2))),
             **{k: getattr(lo, k) for k in (*congruency.MAP_NAMES, *congruency.PASSIVE_NAMES)}}
 
 
@@ -176,7 +198,7 @@ def dataset_mode(args, command: str) -> dict:
         trained = LOParams(**{f.name: row[f.name] for f in dataclasses.fields(LOParams)})
         fits = train(data, trained, args.candidates, args.budget)
         results.append({"id": row["id"], "onsets_ms": [1000 * x for x in congruency.wall_arrangement("series", 5, (1.0, 1.0), data).onsets],
-                        **{name: {**_summary(data, lo, c, s, r), "window_C2": window_c2(relaxed(data, r), lo, arr)}
+                        **{name: {**_summary(data, lo, c, s, r, arr), "window_C2": window_c2(relaxed(data, r), lo, arr)}
                            for name, (lo, c, arr, s, r) in fits.items()}})
     medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
     windows = {name: {w: float(np.median([r[name]["window_C2"][w] for r in results])) for w in diagnosis.WINDOWS} for name in args.candidates}
@@ -214,7 +236,7 @@ def hearts_mode(args, command: str) -> dict:
         traces = {}
         for name, (lo, c, arr, seconds, factor) in fits.items():
             rows = generalisation(dataclasses.replace(heart, lo=lo, elements=arr), scenarios, progress=False, **oracle) if scenarios else []
-            entry["candidates"][name] = {"training": _summary(data, lo, c, seconds, factor),
+            entry["candidates"][name] = {"training": _summary(data, lo, c, seconds, factor, arr),
                                          "unseen": {r["scenario"]: {k: r[k] for k in ("C", "max_rel_error_P", "max_rel_error_V", "lo_status")} for r in rows}}
             traces[name] = rows
         results.append(entry)
@@ -226,7 +248,8 @@ def hearts_mode(args, command: str) -> dict:
     lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = {dt})" + unseen_text +
              f"Goals: training C ≤ {100 * GOALS['training_C']:g} %, unseen C ≤ {100 * GOALS['unseen_C']:g} % and largest pressure "
              f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %. Inflation: the RMS volume residual of the candidate's passive map on "
-             "the FE's quasi-static inflation curve.", "",
+             "the FE's quasi-static inflation curve. The weights candidate's cells: weight w at onset (relative to the median "
+             "activation time).", "",
              "| " + " | ".join(["heart", "candidate", "training C (① ② ③)", "inflation (ml)", *scenarios, "worst unseen C",
                                 "worst pressure error"]) + " |",
              "|---|---|---|---|" + "---|" * len(scenarios) + "---|---|"]
@@ -236,7 +259,11 @@ def hearts_mode(args, command: str) -> dict:
             beats = " ".join(f"{100 * x:.1f}" for x in cand["training"]["C_beats"])
             worst = (f"{100 * max(u['C'] for u in unseen.values()):.1f} | {100 * max(u['max_rel_error_P'] for u in unseen.values()):.0f}"
                      if unseen else "– | –")
-            cells = [entry["heart"], name, f"{100 * cand['training']['C']:.2f} ({beats})", f"{cand['training']['inflation_rms_ml']:.2f}",
+            training = cand["training"]
+            label = name
+            if any(w != 1.0 for w in training.get("weights", ())):
+                label += " (w " + ", ".join(f"{w:.1f} at {t:+.0f} ms" for w, t in zip(training["weights"], training["cell_onsets_ms"])) + ")"
+            cells = [entry["heart"], label, f"{100 * cand['training']['C']:.2f} ({beats})", f"{cand['training']['inflation_rms_ml']:.2f}",
                      *(f"{100 * unseen[s]['C']:.1f} / {100 * unseen[s]['max_rel_error_P']:.0f}" for s in scenarios), worst]
             lines.append("| " + " | ".join(cells) + " |")
     name = f"candidates_hearts{suffix}"
@@ -253,7 +280,7 @@ def retune_mode(args, command: str) -> dict:
             t0 = time.perf_counter()
             rows = map_transfer(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=congruency.MAP_NAMES, budget=args.budget, progress=False)
             keep = ("C_frozen", "C_retuned", "C_extrapolated", "retuned", "where_frozen", "where_retuned", "interior")
-            results.append({"heart": heart_name, "candidate": name, "training": _summary(data, lo, c, seconds, factor), "retune_seconds": time.perf_counter() - t0,
+            results.append({"heart": heart_name, "candidate": name, "training": _summary(data, lo, c, seconds, factor, arr), "retune_seconds": time.perf_counter() - t0,
                             "unseen": {r["scenario"]: {k: r[k] for k in keep} for r in rows}})
     lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = 5 ms), then in each "
              "unseen scenario C with its maps frozen → C with {μ1, μ2, γ, delay} refitted on that scenario's own FE beat "

@@ -234,3 +234,20 @@ def test_onsets_are_validated_with_field_value_and_allowed():
         me.Arrangement("series", 2, onsets=(0.0, 0.5))
     assert np.array_equal(me.Arrangement("parallel", 2, onsets=(-0.01, 0.01)).element_onsets(), [-0.01, 0.01])
     assert np.array_equal(me.Arrangement("parallel", 2).element_onsets(), [0.0, 0.0])
+
+
+def test_series_passive_volume_puts_each_cell_at_the_pressure_and_averages_their_volumes():
+    """Cells in series of weights w_ξ inflate to the V_ξ with w_ξ Ppass(V_ξ) = P (found here by
+    root-finding on the passive law), and the heart's volume is their mean: a heart that used
+    one cell's curve, or the sum, or P × w_ξ, would miss it. Equal weights give one cell's curve."""
+    from scipy.optimize import brentq
+
+    lo, v0 = TABLE3.lo, 35.8
+    arr = me.Arrangement("series", 3, (0.7, 1.3))
+    pressures = np.array([0.2, 1.0, 2.5])
+    volumes = me.passive_volume(pressures, v0, lo, arr)
+    for p, v in zip(pressures, volumes):
+        cells = [brentq(lambda x, w=w: w * float(coupling.passive_pressure(x, v0, lo)) - p, v0, 5 * v0, xtol=1e-12) for w in (0.7, 1.0, 1.3)]
+        assert v == pytest.approx(np.mean(cells), abs=1e-8)
+    assert np.all(np.diff(volumes) > 0)
+    np.testing.assert_allclose(me.passive_volume(pressures, v0, lo, me.Arrangement("series", 3, (1.0, 1.0))), coupling.passive_volume(pressures, v0, lo), rtol=1e-14)
