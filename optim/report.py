@@ -18,6 +18,7 @@ fidelity           ``out/diagnosis/diagnosis.md``;                        ``pyth
                    ``out/diagnosis/candidates_dataset.md``,               ``python scripts/candidate_study.py dataset``,
                    ``candidates_hearts.{md,png}``,                        ``python scripts/candidate_study.py hearts``,
                    ``candidates_hearts_dt2.5ms.md``,                      ``… hearts --dt 0.0025 --no-unseen``,
+                   ``candidates_hearts_h4.5mm.md``,                       ``… hearts --mesh-size 4.5 --candidates single series3-onsets --no-unseen``,
                    ``candidates_retune.md``                               ``python scripts/candidate_study.py retune``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
                    ``out/fit/fidelity_<patient>_<model>.md``;             ``python scripts/fit_patients.py --fidelity``
@@ -108,6 +109,8 @@ FIDELITY_PARTS = (
      "candidates_hearts.png"),
     ("The same, trained on the oracle at dt = 2.5 ms", "candidates_hearts_dt2.5ms.md",
      "python scripts/candidate_study.py hearts --dt 0.0025 --no-unseen", None),
+    ("The same, trained on the oracle at h = 4.5 mm", "candidates_hearts_h4.5mm.md",
+     "python scripts/candidate_study.py hearts --mesh-size 4.5 --candidates single series3-onsets --no-unseen", None),
     ("Maps frozen against maps refitted in each unseen scenario", "candidates_retune.md", "python scripts/candidate_study.py retune", None),
 )
 

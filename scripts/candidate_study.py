@@ -1,7 +1,7 @@
 """Candidate low-order hearts trained against the same FE runs (issue 30, item 2); JSON out.
 
     python scripts/candidate_study.py dataset [--anatomies H000 H001 ...] [--budget 480] [--out out/diagnosis]
-    python scripts/candidate_study.py hearts [--hearts normal heart_failure] [--dt 0.005] [--no-unseen] [--budget 480] [--out out/diagnosis]
+    python scripts/candidate_study.py hearts [--hearts normal heart_failure] [--dt 0.005] [--mesh-size 6] [--no-unseen] [--budget 480] [--out out/diagnosis]
     python scripts/candidate_study.py retune [--hearts normal heart_failure] [--candidates single series3-onsets] [--budget 480] [--out out/diagnosis]
 
 The candidates (`CANDIDATES`):
@@ -51,11 +51,12 @@ on its training beats and its C² per window of the beat (`optim.diagnosis`); wr
 ``--out``/candidates_dataset.md.
 
 ``hearts``: the built-in trained hearts (N, HF), trained on their own FE training beats
-(`optim.congruency.oracle_data`, h = 6 mm, the oracle's time step ``--dt``; FE runs cached) and
+(`optim.congruency.oracle_data` at the oracle's mesh size ``--mesh-size``, default 6 mm, and time
+step ``--dt``; FE runs cached) and
 then run, maps frozen, in the unseen scenarios of `optim.studies.UNSEEN`
 (`optim.studies.generalisation` with the arrangement; ``--no-unseen`` skips them): C and the
 largest pointwise pressure error per scenario, beside the issue's goals (training C ≤ 2 %;
-unseen C ≤ 5 % and pressure error ≤ 10 %). Writes ``--out``/candidates_hearts[_dt<ms>].md and
+unseen C ≤ 5 % and pressure error ≤ 10 %). Writes ``--out``/candidates_hearts[_dt<ms>][_h<mm>].md and
 .png (FE solid, the single cell dashed, each other candidate dotted).
 
 ``retune``: as ``hearts`` (default candidates: single and series3-onsets), then in each unseen
@@ -69,8 +70,9 @@ heart, shipped), carried linearly to the scenario's end, and back. Writes
 ``--out``/candidates_retune.md.
 
 Each candidate costs about a minute per anatomy on one core. The hearts mode's FE runs at the
-oracle's own time step ship with the package (`scripts/ship_fe_runs.py`); another ``--dt``
-costs 4 FE beats per heart (12 with the unseen scenarios) when the cache is cold.
+oracle's own time step and mesh ship with the package (`scripts/ship_fe_runs.py`); another ``--dt``
+or ``--mesh-size`` costs a passive inflation and 3 FE beats per heart (8 more with the unseen
+scenarios) when the cache is cold: about 6 min per beat at h = 4 mm on one core.
 """
 
 from __future__ import annotations
@@ -129,10 +131,11 @@ def relaxed(data: congruency.OracleData, r: float) -> congruency.OracleData:
     return dataclasses.replace(data, cell=dataclasses.replace(data.cell, tau2=data.cell.tau2 * r))
 
 
-def train(data: congruency.OracleData, trained: LOParams, names, budget: int) -> dict:
+def train(data: congruency.OracleData, trained: LOParams, names, budget: int, refit_single: bool = False) -> dict:
     """Each candidate of ``names`` on ``data`` (its wall's onsets, :func:`arrangement`), from the
-    single cell's ``trained`` maps: name → (maps, C per training beat, arrangement, seconds,
-    decay factor r: 1 but for :data:`RELAXED`, the best of :data:`RELAX_GRID`)."""
+    single cell's ``trained`` maps (the single cell keeps them unless ``refit_single``): name →
+    (maps, C per training beat, arrangement, seconds, decay factor r: 1 but for :data:`RELAXED`,
+    the best of :data:`RELAX_GRID`)."""
     out = {}
     for name in names:
         t0 = time.perf_counter()
@@ -159,6 +162,8 @@ def train(data: congruency.OracleData, trained: LOParams, names, budget: int) ->
         elif term == "passive":
             box = {n: tuple(sorted((getattr(trained, n) / PASSIVE_FREEDOM, getattr(trained, n) * PASSIVE_FREEDOM))) for n in congruency.PASSIVE_NAMES}
             lo, c = congruency.fit_active(data, trained, (*congruency.MAP_NAMES, *congruency.PASSIVE_NAMES), budget=budget, arrangement=arr, bounds=box)
+        elif arr is None and refit_single:
+            lo, c = congruency.fit_active(data, trained, congruency.MAP_NAMES, budget=budget)
         elif arr is None:
             lo, c = trained, congruency.run_congruency(data, [trained])[0]
         else:
@@ -219,20 +224,38 @@ def dataset_mode(args, command: str) -> dict:
 
 def trained_hearts(args, oracle: dict) -> Iterator[tuple[str, Heart, congruency.OracleData, dict]]:
     """Each built-in heart of ``--hearts``, its name, its FE training data and its ``--candidates``
-    trained on them (the oracle's options ``oracle``; :func:`train`)."""
+    trained on them (the oracle's options ``oracle``; :func:`train`). On another mesh than the
+    trained maps', the passive map is refitted on that mesh's inflation first
+    (:func:`optim.congruency.fit_passive`), and the single cell's {μ1, μ2, γ, delay} too."""
     for heart_name in args.hearts:
         heart = getattr(presets, heart_name)()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
-        yield heart_name, heart, data, train(data, builtin(heart_name).lo, args.candidates, args.budget)
+        start, remeshed = builtin(heart_name).lo, "mesh_size" in oracle
+        if remeshed:
+            start = congruency.fit_passive(data, start)[0]
+        yield heart_name, heart, data, train(data, start, args.candidates, args.budget, refit_single=remeshed)
+
+
+def oracle_change(data: congruency.OracleData, default: congruency.OracleData) -> list[float]:
+    """C (1) between each training beat of ``default`` (the oracle at its own mesh and time step)
+    and the same beat of ``data`` (the oracle at other options), per condition: how much of a
+    candidate's C the oracle's own discretisation could be."""
+    out = []
+    for k in congruency.CONDITIONS:
+        base = default.beats[k].traces
+        out.append(float(np.sqrt(congruency.congruency(data.beats[k].traces, np.asarray(base["t"]), np.asarray(base["V"])[None], np.asarray(base["P_lv"])[None])[0])))
+    return out
 
 
 def hearts_mode(args, command: str) -> dict:
     results, figure_rows = [], []
-    oracle = {} if args.dt is None else {"dt": args.dt}
+    oracle = {k: v for k, v in (("dt", args.dt), ("mesh_size", args.mesh_size)) if v is not None}
     scenarios = {} if args.no_unseen else UNSEEN
-    suffix = "" if args.dt is None else f"_dt{1000 * args.dt:g}ms"
+    suffix = ("" if args.dt is None else f"_dt{1000 * args.dt:g}ms") + ("" if args.mesh_size is None else f"_h{args.mesh_size:g}mm")
     for heart_name, heart, data, fits in trained_hearts(args, oracle):
         entry = {"heart": heart_name, "candidates": {}}
+        if oracle:
+            entry["oracle_change"] = oracle_change(data, congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False))
         traces = {}
         for name, (lo, c, arr, seconds, factor) in fits.items():
             rows = generalisation(dataclasses.replace(heart, lo=lo, elements=arr), scenarios, progress=False, **oracle) if scenarios else []
@@ -243,9 +266,10 @@ def hearts_mode(args, command: str) -> dict:
         for i, r in enumerate(traces[args.candidates[0]]):
             figure_rows.append({**r, "heart": heart_name, "candidates": {n: traces[n][i]["lo"] for n in args.candidates[1:]}})
     dt = f"{1000 * args.dt:g} ms" if args.dt else "5 ms"
+    h = f"{args.mesh_size:g} mm" if args.mesh_size else "6 mm"
     unseen_text = (", then run with its maps frozen in the unseen scenarios (one beat under condition ②, one parameter changed), "
                    "given as C / largest pressure error (both %). " if scenarios else "; no unseen scenario run. ")
-    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = {dt})" + unseen_text +
+    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = {h}, dt = {dt})" + unseen_text +
              f"Goals: training C ≤ {100 * GOALS['training_C']:g} %, unseen C ≤ {100 * GOALS['unseen_C']:g} % and largest pressure "
              f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %. Inflation: the RMS volume residual of the candidate's passive map on "
              "the FE's quasi-static inflation curve. The weights candidate's cells: weight w at onset (relative to the median "
@@ -266,6 +290,9 @@ def hearts_mode(args, command: str) -> dict:
             cells = [entry["heart"], label, f"{100 * cand['training']['C']:.2f} ({beats})", f"{cand['training']['inflation_rms_ml']:.2f}",
                      *(f"{100 * unseen[s]['C']:.1f} / {100 * unseen[s]['max_rel_error_P']:.0f}" for s in scenarios), worst]
             lines.append("| " + " | ".join(cells) + " |")
+    if oracle:
+        lines += ["", "The oracle's own change: C between its training beats at its default (h = 6 mm, dt = 5 ms) and these "
+                  "(① ② ③, %): " + "; ".join(f"{e['heart']} " + " ".join(f"{100 * x:.2f}" for x in e["oracle_change"]) for e in results) + "."]
     name = f"candidates_hearts{suffix}"
     (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")
     if figure_rows:
@@ -331,6 +358,7 @@ def main() -> None:
     parser.add_argument("--candidates", nargs="+", choices=CANDIDATES,
                         help="default: every candidate (hearts mode: but the relaxation-term ones; retune mode: single and series3-onsets)")
     parser.add_argument("--dt", type=float, help="hearts mode: the oracle's time step (s; default the oracle's own, 5 ms)")
+    parser.add_argument("--mesh-size", type=float, help="hearts mode: the oracle's mesh size h (mm; default the oracle's own, 6 mm)")
     parser.add_argument("--no-unseen", action="store_true", help="hearts mode: the training beats only")
     parser.add_argument("--budget", type=int, default=480, help="MADS evaluations per active fit")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/diagnosis"))
@@ -340,8 +368,9 @@ def main() -> None:
     if args.mode != "dataset" and set(args.candidates) & set(RELAXED):
         parser.error(f"--candidates {sorted(set(args.candidates) & set(RELAXED))}: the relaxation-term candidates run in the dataset mode only "
                      "(the unseen scenarios would run their LO cell with the wall's τ2)")
-    if args.mode == "retune" and (args.dt is not None or args.no_unseen):
-        parser.error("--dt and --no-unseen are options of the hearts mode: the retune mode runs the unseen scenarios at the oracle's own time step")
+    if args.mode == "retune" and (args.dt is not None or args.mesh_size is not None or args.no_unseen):
+        parser.error("--dt, --mesh-size and --no-unseen are options of the hearts mode: the retune mode runs the unseen scenarios at the "
+                     "oracle's own time step and mesh")
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python scripts/candidate_study.py " + " ".join(sys.argv[1:])
     result = {"dataset": dataset_mode, "hearts": hearts_mode, "retune": retune_mode}[args.mode](args, command)

@@ -1,12 +1,14 @@
 """Ship the built-in hearts' FE runs with the package, so that a fresh machine compares LO hearts against them without an FE run; JSON out.
 
-    python scripts/ship_fe_runs.py [--hearts normal heart_failure] [--dt 0.005]
+    python scripts/ship_fe_runs.py [--hearts normal heart_failure] [--dt 0.005] [--mesh-size 6] [--no-unseen]
 
 For each built-in heart (N, HF, `scripts.train_presets.HEARTS`): the runs its training takes
 (`optim.congruency.oracle_data`: the passive curve and the beats ①②③, h = 6 mm), its
 unseen scenarios (`optim.studies.UNSEEN`, one beat each under condition ②) and a point inside
 each scenario's axis (`optim.studies.INTERIOR`), the runs `scripts/candidate_study.py hearts` and
-`retune`, `scripts/generalisation.py` and `scripts/train_presets.py` compare against. Each is
+`retune`, `scripts/generalisation.py` and `scripts/train_presets.py` compare against
+(``--no-unseen``: the training runs alone; ``--dt`` and ``--mesh-size``: the oracle's, as for
+`candidate_study.py hearts`). Each is
 read from the oracle's cache or run (about a minute per beat on one core, more while other work
 runs), then written to `fe_oracle.cache.SHIPPED` under its key,
 without its solver log. `fe_oracle.run` reads them from there when the cache lacks them
@@ -35,14 +37,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS))
     parser.add_argument("--dt", type=float, default=None, help="the oracle's time step (s; default its own, 5 ms)")
+    parser.add_argument("--mesh-size", type=float, default=None, help="the oracle's mesh size h (mm; default its own, 6 mm)")
+    parser.add_argument("--no-unseen", action="store_true", help="the training runs alone, not the unseen scenarios and interior points")
     args = parser.parse_args()
-    oracle = {} if args.dt is None else {"dt": args.dt}
+    oracle = {k: v for k, v in (("dt", args.dt), ("mesh_size", args.mesh_size)) if v is not None}
     runs = {}
     for name in args.hearts:
         heart = getattr(presets, name)()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
         results = {f"training {case}": r for case, r in (("passive", data.passive), *((str(k), b) for k, b in data.beats.items()))}
-        for label, change in {**UNSEEN, **dict(INTERIOR.values())}.items():
+        for label, change in ({} if args.no_unseen else {**UNSEEN, **dict(INTERIOR.values())}).items():
             h = scenario(heart, change)
             results[label] = fe_oracle.run(h.geometry, h.circulation, cell=h.cell, progress=False, **oracle)
         for label, result in results.items():
