@@ -52,11 +52,13 @@ on its training beats and its C² per window of the beat (`optim.diagnosis`); wr
 
 ``hearts``: the built-in trained hearts (N, HF), trained on their own FE training beats
 (`optim.congruency.oracle_data` at the oracle's mesh size ``--mesh-size``, default 6 mm, and time
-step ``--dt``; FE runs cached) and
+step ``--dt``; FE runs cached; on another mesh the passive map is first refitted on that mesh's
+inflation, and the single cell's maps are refitted too) and
 then run, maps frozen, in the unseen scenarios of `optim.studies.UNSEEN`
 (`optim.studies.generalisation` with the arrangement; ``--no-unseen`` skips them): C and the
 largest pointwise pressure error per scenario, beside the issue's goals (training C ≤ 2 %;
-unseen C ≤ 5 % and pressure error ≤ 10 %). Writes ``--out``/candidates_hearts[_dt<ms>][_h<mm>].md and
+unseen C ≤ 5 % and pressure error ≤ 10 %); with ``--dt`` or ``--mesh-size``, also C between the
+oracle's own training beats at its defaults and at these. Writes ``--out``/candidates_hearts[_dt<ms>][_h<mm>].md and
 .png (FE solid, the single cell dashed, each other candidate dotted).
 
 ``retune``: as ``hearts`` (default candidates: single and series3-onsets), then in each unseen
