@@ -98,6 +98,7 @@ from lvenv.plots import generalisation_figure  # noqa: E402
 from lvenv.trained import builtin  # noqa: E402
 from optim import campaign, congruency, diagnosis  # noqa: E402
 from optim.studies import UNSEEN, generalisation, map_transfer  # noqa: E402
+from scripts.ship_fe_runs import add_oracle_arguments, oracle_options  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 #: The multi-element candidates: name → (arrangement kind, cells).
@@ -251,7 +252,7 @@ def oracle_change(data: congruency.OracleData, default: congruency.OracleData) -
 
 def hearts_mode(args, command: str) -> dict:
     results, figure_rows = [], []
-    oracle = {k: v for k, v in (("dt", args.dt), ("mesh_size", args.mesh_size)) if v is not None}
+    oracle = oracle_options(args)
     scenarios = {} if args.no_unseen else UNSEEN
     suffix = ("" if args.dt is None else f"_dt{1000 * args.dt:g}ms") + ("" if args.mesh_size is None else f"_h{args.mesh_size:g}mm")
     for heart_name, heart, data, fits in trained_hearts(args, oracle):
@@ -359,8 +360,7 @@ def main() -> None:
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS), help="hearts and retune modes: the built-in hearts")
     parser.add_argument("--candidates", nargs="+", choices=CANDIDATES,
                         help="default: every candidate (hearts mode: but the relaxation-term ones; retune mode: single and series3-onsets)")
-    parser.add_argument("--dt", type=float, help="hearts mode: the oracle's time step (s; default the oracle's own, 5 ms)")
-    parser.add_argument("--mesh-size", type=float, help="hearts mode: the oracle's mesh size h (mm; default the oracle's own, 6 mm)")
+    add_oracle_arguments(parser, "hearts mode: ")
     parser.add_argument("--no-unseen", action="store_true", help="hearts mode: the training beats only")
     parser.add_argument("--budget", type=int, default=480, help="MADS evaluations per active fit")
     parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/diagnosis"))

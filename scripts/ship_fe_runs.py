@@ -33,14 +33,25 @@ from optim.studies import INTERIOR, UNSEEN, scenario  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 
+def add_oracle_arguments(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    """``--dt`` and ``--mesh-size``, the oracle's options (here and in `candidate_study.py hearts`);
+    ``prefix`` starts their help."""
+    parser.add_argument("--dt", type=float, help=f"{prefix}the oracle's time step (s; default its own, 5 ms)")
+    parser.add_argument("--mesh-size", type=float, help=f"{prefix}the oracle's mesh size h (mm; default its own, 6 mm)")
+
+
+def oracle_options(args: argparse.Namespace) -> dict:
+    """`fe_oracle.run`'s keywords for the ``--dt`` and ``--mesh-size`` given (none: the oracle's defaults)."""
+    return {k: v for k, v in (("dt", args.dt), ("mesh_size", args.mesh_size)) if v is not None}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS))
-    parser.add_argument("--dt", type=float, default=None, help="the oracle's time step (s; default its own, 5 ms)")
-    parser.add_argument("--mesh-size", type=float, default=None, help="the oracle's mesh size h (mm; default its own, 6 mm)")
+    add_oracle_arguments(parser)
     parser.add_argument("--no-unseen", action="store_true", help="the training runs alone, not the unseen scenarios and interior points")
     args = parser.parse_args()
-    oracle = {k: v for k, v in (("dt", args.dt), ("mesh_size", args.mesh_size)) if v is not None}
+    oracle = oracle_options(args)
     runs = {}
     for name in args.hearts:
         heart = getattr(presets, name)()
