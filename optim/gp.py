@@ -26,6 +26,8 @@ not yet taken. The initial design is a Latin hypercube (McKay, Beckman & Conover
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import warnings
 from collections.abc import Callable
 from typing import Literal
@@ -37,7 +39,7 @@ from scipy.stats import qmc
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Kernel, Matern
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from optim.protocol import FloatArray
 
@@ -46,10 +48,18 @@ BatchStrategy = Literal["believer", "liar"]
 Box = tuple[FloatArray, FloatArray]
 
 
-def single_threaded_blas() -> threadpool_limits:
+@functools.cache
+def _blas_controller() -> ThreadpoolController:
+    """The process's thread pools, found at the first use (after this module's imports have loaded
+    every BLAS it calls) and kept: finding them reads the process's memory map, which cost more
+    than a MADS iteration's own work when done at every iteration."""
+    return ThreadpoolController()
+
+
+def single_threaded_blas() -> contextlib.AbstractContextManager:
     """Context limiting BLAS to one thread: the GP matrices (a few hundred rows) factorise
     several times faster without thread start-up, and the cores stay free for the environment."""
-    return threadpool_limits(limits=1, user_api="blas")
+    return _blas_controller().limit(limits=1, user_api="blas")
 
 
 def latin_hypercube(n_points: int, dimension: int, rng: np.random.Generator) -> FloatArray:

@@ -240,6 +240,7 @@ class Optimizer(abc.ABC):
         self._pending_u: FloatArray | None = None
         self._batches = 0
         self._records: list[tuple[FloatArray, BatchEvaluation, FloatArray, int]] = []
+        self._evaluations = 0
         self._best_merit = np.inf
 
     # ---------------------------------------------------------------- subclass interface
@@ -275,7 +276,7 @@ class Optimizer(abc.ABC):
 
     @property
     def evaluations(self) -> int:
-        return sum(len(r[0]) for r in self._records)
+        return self._evaluations
 
     @property
     def min_budget(self) -> int:
@@ -334,6 +335,7 @@ class Optimizer(abc.ABC):
         merit = self._merit(ev)
         u = self._pending_u
         self._records.append((x_arr.copy(), ev, merit, self._batches))
+        self._evaluations += q
         self._best_merit = min(self._best_merit, float(np.min(merit)))
         self._pending_x = self._pending_u = None
         self._batches += 1

@@ -12,6 +12,7 @@ import pytest
 from scipy import integrate, stats
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern
+from threadpoolctl import threadpool_info
 
 import lvenv  # noqa: F401  (registers lvenv/LVHeart-v0)
 import optim
@@ -26,6 +27,7 @@ from optim.gp import (
     minimise_on_cube,
     predict,
     propose_batch,
+    single_threaded_blas,
     thompson_batch,
 )
 from optim.kriging import TrustRegion
@@ -121,6 +123,18 @@ def test_expected_improvement_far_in_the_tail() -> None:
     got = expected_improvement(-0.1 * z, np.full(3, 0.1), 0.0)
     np.testing.assert_allclose(got, ref, rtol=1e-7)
     assert np.all(got > 0)
+
+
+def test_single_threaded_blas_limits_every_blas_pool_each_time_and_restores_it() -> None:
+    """The pools are found once and reused (each MADS iteration enters the context): every entry
+    still limits each BLAS to one thread, and leaving it restores the thread counts."""
+    blas = lambda: [info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas"]
+    before = blas()
+    assert before, "numpy and scipy load a BLAS"
+    for _ in range(2):
+        with single_threaded_blas():
+            assert blas() == [1] * len(before)
+        assert blas() == before
 
 
 def test_latin_hypercube_has_one_point_per_stratum() -> None:
