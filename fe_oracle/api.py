@@ -17,7 +17,7 @@ from fe_oracle.cases import Passive, resolve_case
 from fe_oracle.material import Guccione
 from fe_oracle.result import OracleResult
 
-__all__ = ["ACTIVATIONS", "BACKENDS", "DEFAULT_DT", "MAX_BEATS", "MAX_DURATION_S", "INSTALL_HINT", "run", "load_backend"]
+__all__ = ["ACTIVATIONS", "BACKENDS", "DEFAULT_DT", "DEFAULT_MESH_SIZE", "MAX_BEATS", "MAX_DURATION_S", "INSTALL_HINT", "run", "load_backend"]
 
 BACKENDS = ("dolfinx", "multielement")
 #: How the dolfinx backend's wall activates: from the eikonal solve (DESIGN §4, the default) or
@@ -26,6 +26,8 @@ BACKENDS = ("dolfinx", "multielement")
 ACTIVATIONS = ("eikonal", "synchronous")
 #: Default time step (s) per backend.
 DEFAULT_DT = {"dolfinx": 0.005, "multielement": 0.001}
+#: Default mesh size h (mm) of the dolfinx backend: the size the LO maps are trained at.
+DEFAULT_MESH_SIZE = 6.0
 #: Most beats one oracle run may cover (an FE beat costs minutes; a steady state needs a few),
 #: and the longest ``duration`` (s): that many beats at the slowest heart rate, 20/min.
 MAX_BEATS = 100
@@ -47,7 +49,7 @@ def run(
     case="passive",
     backend: str = "dolfinx",
     *,
-    mesh_size: float = 6.0,
+    mesh_size: float = DEFAULT_MESH_SIZE,
     dt: float | None = None,
     beats: int = 1,
     duration: float | None = None,

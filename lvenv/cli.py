@@ -57,6 +57,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from fe_oracle.api import DEFAULT_MESH_SIZE
 from lvenv import interrupt, jitcache, plots, presets
 from lvenv.presets import LO_MODELS, MULTI_ELEMENT_MODELS
 from lvenv.geometry import cavity_volume
@@ -422,7 +423,7 @@ def _posterior_table(identified) -> Table:
               help="refit at this many draws of the LO maps from the anatomy regression (a record with \"lo\": \"regression\") "
                    "and report the spread they give each parameter (optim.map_uncertainty)")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
-@click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm) of --fidelity")
+@click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=DEFAULT_MESH_SIZE, show_default=True, help="FE mesh size h (mm) of --fidelity")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
 @click.option("--convergence", "convergence_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
               help="write the best mismatch against evaluations (.png or .pdf)")
@@ -659,7 +660,7 @@ def train_command(heart, out_path, backend, arrangement, mesh_size, budget, dela
 @click.option("--case", type=click.Choice(("passive", "1", "2", "3", "closed")), default="2", show_default=True,
               help="passive inflation, Table 2 condition 1–3 (one beat), or the preset's closed loop")
 @click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default="dolfinx", show_default=True)
-@click.option("--mesh-size", type=click.FloatRange(min=1.0), default=6.0, show_default=True, help="FE mesh size h (mm; dolfinx)")
+@click.option("--mesh-size", type=click.FloatRange(min=1.0), default=DEFAULT_MESH_SIZE, show_default=True, help="FE mesh size h (mm; dolfinx)")
 @click.option("--beats", type=click.IntRange(min=1), default=1, show_default=True, help="beats of the closed loop")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
               help="write FE (solid) against LO (dashed) traces (.png or .pdf; beat cases)")

@@ -129,7 +129,7 @@ class Settings:
     """
 
     backend: str = "dolfinx"
-    mesh_size: float = 6.0
+    mesh_size: float = fe_oracle.DEFAULT_MESH_SIZE
     dt: float | None = None
     budget: int = 960
     timeout_s: float = 3600.0

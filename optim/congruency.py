@@ -390,7 +390,7 @@ def train_on(data: OracleData, *, start: LOParams | None = None, delay: str = "a
 def _provenance(data: OracleData, **training: Any) -> dict[str, Any]:
     """Where a record trained on ``data`` came from: the oracle's backend, mesh size, time step,
     cache keys and options, the code versions, the training's settings and the time."""
-    mesh = None if data.backend != "dolfinx" else float(data.options.get("mesh_size", 6.0))
+    mesh = None if data.backend != "dolfinx" else float(data.options.get("mesh_size", fe_oracle.DEFAULT_MESH_SIZE))
     return {
         "backend": data.backend, "mesh_size_mm": mesh, "dt_s": data.beats[CONDITIONS[0]].metadata.get("dt_s"),
         "oracle_keys": data.keys, "oracle_options": {k: v for k, v in data.options.items() if k != "cache_dir" and isinstance(v, (int, float, str))},

@@ -98,7 +98,7 @@ from lvenv.plots import generalisation_figure  # noqa: E402
 from lvenv.trained import builtin  # noqa: E402
 from optim import campaign, congruency, diagnosis  # noqa: E402
 from optim.studies import UNSEEN, generalisation, map_transfer  # noqa: E402
-from scripts.ship_fe_runs import add_oracle_arguments, oracle_options  # noqa: E402
+from scripts.ship_fe_runs import add_oracle_arguments, oracle_options, oracle_setting  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 #: The multi-element candidates: name → (arrangement kind, cells).
@@ -211,7 +211,7 @@ def dataset_mode(args, command: str) -> dict:
     medians = {name: float(np.median([r[name]["C"] for r in results])) for name in args.candidates}
     windows = {name: {w: float(np.median([r[name]["window_C2"][w] for r in results])) for w in diagnosis.WINDOWS} for name in args.candidates}
     lines = [f"Made by `{command}`: each candidate trained on each anatomy's own FE training beats (campaign dataset, "
-             "h = 6 mm, dt = 5 ms; no FE run). C on the training beats, in %.", "",
+             f"{oracle_setting()}; no FE run). C on the training beats, in %.", "",
              "Median over the anatomies: " + ", ".join(f"{n} {100 * m:.2f} %" for n, m in medians.items()) + ".", "",
              "| anatomy | 5 cells' onsets (ms) | " + " | ".join(args.candidates) + " |", "|---|---|" + "---|" * len(args.candidates)]
     cell = lambda fit: f"{100 * fit['C']:.2f}" + (f" (r {fit['relax']:g})" if fit["relax"] != 1.0 else "")
@@ -268,11 +268,9 @@ def hearts_mode(args, command: str) -> dict:
         results.append(entry)
         for i, r in enumerate(traces[args.candidates[0]]):
             figure_rows.append({**r, "heart": heart_name, "candidates": {n: traces[n][i]["lo"] for n in args.candidates[1:]}})
-    dt = f"{1000 * args.dt:g} ms" if args.dt else "5 ms"
-    h = f"{args.mesh_size:g} mm" if args.mesh_size else "6 mm"
     unseen_text = (", then run with its maps frozen in the unseen scenarios (one beat under condition ②, one parameter changed), "
                    "given as C / largest pressure error (both %). " if scenarios else "; no unseen scenario run. ")
-    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = {h}, dt = {dt})" + unseen_text +
+    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats ({oracle_setting(args)})" + unseen_text +
              f"Goals: training C ≤ {100 * GOALS['training_C']:g} %, unseen C ≤ {100 * GOALS['unseen_C']:g} % and largest pressure "
              f"error ≤ {100 * GOALS['unseen_pressure_error']:g} %. Inflation: the RMS volume residual of the candidate's passive map on "
              "the FE's quasi-static inflation curve. The weights candidate's cells: weight w at onset (relative to the median "
@@ -294,7 +292,7 @@ def hearts_mode(args, command: str) -> dict:
                      *(f"{100 * unseen[s]['C']:.1f} / {100 * unseen[s]['max_rel_error_P']:.0f}" for s in scenarios), worst]
             lines.append("| " + " | ".join(cells) + " |")
     if oracle:
-        lines += ["", "The oracle's own change: C between its training beats at its default (h = 6 mm, dt = 5 ms) and these "
+        lines += ["", f"The oracle's own change: C between its training beats at its default ({oracle_setting()}) and these "
                   "(① ② ③, %): " + "; ".join(f"{e['heart']} " + " ".join(f"{100 * x:.2f}" for x in e["oracle_change"]) for e in results) + "."]
     name = f"candidates_hearts{suffix}"
     (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")
@@ -312,7 +310,7 @@ def retune_mode(args, command: str) -> dict:
             keep = ("C_frozen", "C_retuned", "C_extrapolated", "retuned", "where_frozen", "where_retuned", "interior")
             results.append({"heart": heart_name, "candidate": name, "training": _summary(data, lo, c, seconds, factor, arr), "retune_seconds": time.perf_counter() - t0,
                             "unseen": {r["scenario"]: {k: r[k] for k in keep} for r in rows}})
-    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats (h = 6 mm, dt = 5 ms), then in each "
+    lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats ({oracle_setting()}), then in each "
              "unseen scenario C with its maps frozen → C with {μ1, μ2, γ, delay} refitted on that scenario's own FE beat "
              "(`optim.studies.retune`), both %. The second is how close the candidate comes to the beat at all; the gap is what "
              f"the trained maps' not carrying over costs. Goal: unseen C ≤ {100 * GOALS['unseen_C']:g} %.", "",
@@ -370,9 +368,9 @@ def main() -> None:
     if args.mode != "dataset" and set(args.candidates) & set(RELAXED):
         parser.error(f"--candidates {sorted(set(args.candidates) & set(RELAXED))}: the relaxation-term candidates run in the dataset mode only "
                      "(the unseen scenarios would run their LO cell with the wall's τ2)")
-    if args.mode == "retune" and (args.dt is not None or args.mesh_size is not None or args.no_unseen):
-        parser.error("--dt, --mesh-size and --no-unseen are options of the hearts mode: the retune mode runs the unseen scenarios at the "
-                     "oracle's own time step and mesh")
+    if args.mode != "hearts" and (args.dt is not None or args.mesh_size is not None or args.no_unseen):
+        parser.error("--dt, --mesh-size and --no-unseen are options of the hearts mode: the dataset mode reads the campaign's FE traces "
+                     "and the retune mode runs the unseen scenarios, both at the oracle's own time step and mesh")
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python scripts/candidate_study.py " + " ".join(sys.argv[1:])
     result = {"dataset": dataset_mode, "hearts": hearts_mode, "retune": retune_mode}[args.mode](args, command)

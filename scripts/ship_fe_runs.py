@@ -36,13 +36,20 @@ from scripts.train_presets import HEARTS  # noqa: E402
 def add_oracle_arguments(parser: argparse.ArgumentParser, prefix: str = "") -> None:
     """``--dt`` and ``--mesh-size``, the oracle's options (here and in `candidate_study.py hearts`);
     ``prefix`` starts their help."""
-    parser.add_argument("--dt", type=float, help=f"{prefix}the oracle's time step (s; default its own, 5 ms)")
-    parser.add_argument("--mesh-size", type=float, help=f"{prefix}the oracle's mesh size h (mm; default its own, 6 mm)")
+    parser.add_argument("--dt", type=float, help=f"{prefix}the oracle's time step (s; default its own, {1000 * fe_oracle.DEFAULT_DT['dolfinx']:g} ms)")
+    parser.add_argument("--mesh-size", type=float, help=f"{prefix}the oracle's mesh size h (mm; default its own, {fe_oracle.DEFAULT_MESH_SIZE:g} mm)")
 
 
 def oracle_options(args: argparse.Namespace) -> dict:
     """`fe_oracle.run`'s keywords for the ``--dt`` and ``--mesh-size`` given (none: the oracle's defaults)."""
     return {k: v for k, v in (("dt", args.dt), ("mesh_size", args.mesh_size)) if v is not None}
+
+
+def oracle_setting(args: argparse.Namespace | None = None) -> str:
+    """The oracle's mesh size and time step as the tables write them: ``args``'s ``--mesh-size``
+    and ``--dt`` where given, else the oracle's own (``fe_oracle.DEFAULT_MESH_SIZE``, ``DEFAULT_DT``)."""
+    options = {"mesh_size": fe_oracle.DEFAULT_MESH_SIZE, "dt": fe_oracle.DEFAULT_DT["dolfinx"], **({} if args is None else oracle_options(args))}
+    return f"h = {options['mesh_size']:g} mm, dt = {1000 * options['dt']:g} ms"
 
 
 def main() -> None:
