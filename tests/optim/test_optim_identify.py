@@ -234,7 +234,7 @@ def test_identifiability_report_holds_every_parameter_its_figures_and_the_number
 
     patient = builtin("normal")
     fit = {n: float(patient.heart.get(n)) for n in ACTION_BOUNDS}
-    options = CohortOptions(candidates=8, budget=16, stop_mismatch=0.0, slots=32)
+    options = CohortOptions(candidates=8, budget=16, stop_mismatch=0.0, slots=32, steps_per_beat=STEPS)  # the sensitivity's programs of the first test
     small = dict(walkers=16, steps=10, burn=4, chains=8, chain_steps=16, chain_burn=4, steps_per_beat=STEPS, max_beats=30)
     off = {k: 1.1 * v for k, v in patient.targets.items()}  # each target 10 % off: χ² at the fit is known
     path = write_report(patient, fit, off, tmp_path, grid=3, options=options, posterior_options=small)
