@@ -57,12 +57,12 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from fe_oracle.api import DEFAULT_MESH_SIZE
+from fe_oracle.api import BACKENDS, DEFAULT_MESH_SIZE
 from lvenv import interrupt, jitcache, plots, presets
 from lvenv.presets import LO_MODELS, MULTI_ELEMENT_MODELS
 from lvenv.geometry import cavity_volume
 from lvenv.identification import ACTION_BOUNDS
-from lvenv.metrics import SUMMARY_NAMES, display, header
+from lvenv.metrics import METRICS, SUMMARY_NAMES, display, header
 from lvenv.params import field_names
 from lvenv.patients import BUILTIN, Patient, builtin
 from lvenv.plausibility import report as plausibility_report
@@ -423,14 +423,24 @@ def _posterior_table(identified) -> Table:
               help="refit at this many draws of the LO maps from the anatomy regression (a record with \"lo\": \"regression\") "
                    "and report the spread they give each parameter (optim.map_uncertainty)")
 @click.option("--fidelity", is_flag=True, help="also run the 3-D FE oracle at the fit (needs the `fe` extra; minutes)")
-@click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=DEFAULT_MESH_SIZE, show_default=True, help="FE mesh size h (mm) of --fidelity")
+@click.option("--fidelity-mesh", type=click.FloatRange(min=1.0), default=DEFAULT_MESH_SIZE, show_default=True, help="FE mesh size h (mm) of the dolfinx oracle of --fidelity and --correct-maps")
+@click.option("--fidelity-backend", type=click.Choice(BACKENDS), default="dolfinx", show_default=True,
+              help="the oracle of --fidelity and --correct-maps (multielement: the multi-element LO heart of DESIGN §1.4, seconds instead of minutes)")
+@click.option("--retune-maps", is_flag=True,
+              help="with --fidelity: also refit {mu1, mu2, gamma, delay} on the oracle's beat and compare again (the model's own floor there)")
+@click.option("--correct-maps", type=click.IntRange(min=0, max=10), default=0, show_default=True, metavar="K",
+              help="K rounds of: the maps refitted on the oracle's beat at the fit, the patient fitted again with them (optim.fit.corrected_fit); "
+                   "then the oracle at the last fit. Implies --fidelity; each round costs an oracle run, a refit and a fit (minutes)")
+@click.option("--retune-budget", type=click.IntRange(min=16), default=480, show_default=True,
+              help="MADS evaluations of each refit of the maps (--retune-maps, --correct-maps), before least squares")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
 @click.option("--convergence", "convergence_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
               help="write the best mismatch against evaluations (.png or .pdf)")
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
 def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, model, plausibility, identifiability, report_dir, map_draws,
-                fidelity, fidelity_mesh, plot_path, convergence_path, posterior, n_samples, refine, as_json) -> int:
+                fidelity, fidelity_mesh, fidelity_backend, retune_maps, correct_maps, retune_budget, plot_path, convergence_path, posterior,
+                n_samples, refine, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets.
     A record may give an imaged geometry to unload and take its maps from the anatomy regression
     (lvenv.patients); --map-draws then carries the maps' uncertainty into the fit."""
@@ -441,6 +451,9 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     record = _patient_arg(patient, model)
     if map_draws == 1:
         raise click.UsageError("--map-draws needs at least 2 draws (0: no refits)")
+    if retune_maps and (correct_maps or not fidelity):
+        raise click.UsageError("--retune-maps refits the maps on the beat of --fidelity; --correct-maps refits them at every round but the last"
+                               if correct_maps else "--retune-maps refits the maps on the oracle's beat: it needs --fidelity")
     if map_draws:
         from optim.map_uncertainty import require_regression_maps
 
@@ -502,15 +515,16 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
             identified = identify_patients([record], n_samples, seed=seed, refine=refine, mcmc_options={"plausibility": plausibility}, progress=_refining,
                                            importance=importance)[0]
         payload["posterior"] = _posterior_payload(identified)
-    if fidelity and ok:
-        try:
-            from optim.congruency import check_fidelity
-            payload["fidelity"] = check_fidelity(heart, mesh_size=fidelity_mesh, progress=_err.is_terminal).to_dict()
-        except ImportError as err:
-            raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
+    oracle_failed = False
+    if (fidelity or correct_maps) and not ok:
+        _err.print(f"no check against the oracle: the fit has no usable steady state (status {res.status})", markup=False)
+    if (fidelity or correct_maps) and ok:
+        oracle_failed = _check_against_oracle(payload, record, res, heart, method, compile_time, correct_maps, retune_maps, retune_budget,
+                                              fidelity_backend, fidelity_mesh, num_envs, budget, seed, steps_per_beat, scheme, plausibility)
+    code = EXIT_OK if ok and not oracle_failed else EXIT_FAILED
     if as_json:
         _print_json(payload)
-        return _finish(EXIT_OK if ok else EXIT_FAILED, unsaved)
+        return _finish(code, unsaved)
     out = _out()
     out.print(f"{record.name}: {method}, {res.evaluations} evaluations in {res.wall_time:.1f} s "
               f"(+ {compile_time:.1f} s compiling); mismatch {100 * res.mismatch:.2f} %, status {res.status}")
@@ -539,12 +553,95 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         out.print(_posterior_table(identified))
     if "report" in payload:
         out.print(f"identifiability report: {payload['report']}")
-    if "fidelity" in payload:
-        fid = payload["fidelity"]
-        out.print(f"fidelity against the 3-D oracle (h = {fidelity_mesh:g} mm): C {100 * fid['C']:.2f} %, {'within' if fid['ok'] else 'OUTSIDE'} tolerance")
-        for name, (lo, fe, diff) in fid["rows"].items():
-            out.print(f"  {header(name):18s} LO {display(name, lo):>8s}  FE {display(name, fe):>8s}  {'ok' if fid['within'][name] else 'OUT'}")
-    return _finish(EXIT_OK if ok else EXIT_FAILED, unsaved)
+    if "correction" in payload:
+        last = payload["correction"][-1]
+        out.print(_correction_table(payload["correction"], fidelity_backend, fidelity_mesh))
+        out.print(f"the fit of round {last['round']}, with the corrected maps: mismatch {100 * last['mismatch']:.2f} %, status {last['status']}")
+        out.print(_parameter_table(last["parameters"]))
+    elif "fidelity" in payload:
+        out.print(_fidelity_table(payload["fidelity"], fidelity_backend, fidelity_mesh))
+    if "fidelity_error" in payload:
+        _err.print(f"lvenv: the oracle failed: {payload['fidelity_error']}", markup=False, soft_wrap=True)
+    return _finish(code, unsaved)
+
+
+def _check_against_oracle(payload: dict, record: Patient, res, heart, method: str, compile_time: float, correct_maps: int, retune_maps: bool,
+                          retune_budget: int, backend: str, mesh_size: float, num_envs: int, budget: int, seed: int, steps_per_beat: int,
+                          scheme: str | None, plausibility: bool) -> bool:
+    """``fit --fidelity`` / ``--correct-maps``: the oracle at the fit ``res`` into ``payload``
+    (``fidelity``; with ``correct_maps`` also ``correction``, a record per round). Returns True if
+    the oracle failed (``payload["fidelity_error"]`` says how); the fit is kept either way."""
+    try:
+        from fe_oracle import OracleDidNotConverge
+        from optim.congruency import MAP_NAMES, check_fidelity
+        from optim.fit import FitRow, corrected_fit
+    except ImportError as err:
+        raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
+    oracle = {"mesh_size": mesh_size} if backend == "dolfinx" else {}
+    try:
+        if not correct_maps:
+            payload["fidelity"] = check_fidelity(heart, backend, progress=_err.is_terminal, retune=MAP_NAMES if retune_maps else (),
+                                                 retune_budget=retune_budget, **oracle).to_dict()
+            return False
+        _err.print(f"correcting the maps: {correct_maps} round(s) of an oracle run, a refit of the maps and a fit, then the oracle "
+                   "at the last fit (minutes)", markup=False)
+        rounds = corrected_fit(record, (method,), correct_maps, first=FitRow.of(res, compile_time), backend=backend, retune_budget=retune_budget,
+                               num_envs=num_envs, budget=budget, seed=seed, steps_per_beat=steps_per_beat, plausibility=plausibility,
+                               scheme=scheme, options={"lm": {"budget": budget}}, progress=_err.is_terminal, **oracle)
+    except ImportError as err:
+        raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
+    except OracleDidNotConverge as err:
+        payload["fidelity_error"] = str(err)
+        return True
+    payload["fidelity"] = rounds[0].fidelity.to_dict()
+    payload["correction"] = [{"round": r, "maps": step.maps, "parameters": step.fit.parameters, "mismatch": step.fit.mismatch,
+                              "status": step.fit.status, "evaluations": step.fit.evaluations, "fidelity": step.fidelity.to_dict()}
+                             for r, step in enumerate(rounds)]
+    return False
+
+
+def _oracle_title(fid: dict, backend: str, mesh_size: float) -> str:
+    return f"{backend} oracle" + (f", h = {mesh_size:g} mm" if backend == "dolfinx" else "") + f", {fid['provenance']['beats']} beats"
+
+
+def _fidelity_table(fid: dict, backend: str, mesh_size: float) -> Table:
+    """``fit --fidelity``: LO, oracle and oracle − LO per target, also with the maps refitted on
+    the oracle's beat if ``fid`` (:meth:`Fidelity.to_dict`) has them."""
+    from optim.congruency import difference_unit, format_difference
+
+    again = fid["retuned"]
+    title = f"fidelity against the {_oracle_title(fid, backend, mesh_size)}: C {100 * fid['C']:.2f} %, {'within' if fid['ok'] else 'OUTSIDE'} tolerance"
+    if again is not None:
+        title += f"; maps refitted on its beat ({', '.join(f'{n} {v:.4g}' for n, v in again['lo'].items())}): C {100 * again['C']:.2f} %"
+    table = Table(title=title, title_justify="left")
+    for col in ("target", "LO", "oracle", "oracle − LO", "", *(("refitted maps: oracle − LO", "") if again is not None else ())):
+        table.add_column(col, justify="right")
+    for name, (lo, fe, diff) in fid["rows"].items():
+        cells = [header(name), display(name, lo), display(name, fe), f"{format_difference(name, diff)} {difference_unit(name)}",
+                 "ok" if fid["within"][name] else "OUT"]
+        if again is not None:
+            cells += [f"{format_difference(name, again['rows'][name][2])} {difference_unit(name)}", "ok" if again["within"][name] else "OUT"]
+        table.add_row(*cells)
+    return table
+
+
+def _correction_table(rounds: list[dict], backend: str, mesh_size: float) -> Table:
+    """``fit --correct-maps``: per round, the maps, the fit's mismatch, C and oracle − LO per
+    target (OUT: outside the tolerance); the parameters of the last round's fit follow it."""
+    from optim.congruency import FIDELITY_TOLERANCE, difference_unit, format_difference
+
+    last = rounds[-1]["fidelity"]
+    table = Table(title=f"maps corrected against the {_oracle_title(last, backend, mesh_size)}: round 0 has the heart's own maps, each next "
+                        f"round the maps refitted on the last round's beat; last round C {100 * last['C']:.2f} %, "
+                        f"{'within' if last['ok'] else 'OUTSIDE'} tolerance", title_justify="left")
+    for col in ("round", "mu1", "mu2", "gamma", "delay (ms)", "mismatch (%)", "C (%)", *(f"{METRICS[t].label} ({difference_unit(t)})" for t in FIDELITY_TOLERANCE)):
+        table.add_column(col, justify="right")
+    for step in rounds:
+        fid, maps = step["fidelity"], step["maps"]
+        table.add_row(str(step["round"]), *(f"{maps[n]:.4g}" for n in ("mu1", "mu2", "gamma")), f"{1000 * maps['delay']:.1f}",
+                      f"{100 * step['mismatch']:.2f}", f"{100 * fid['C']:.2f}",
+                      *(format_difference(t, fid["rows"][t][2]) + ("" if fid["within"][t] else " OUT") for t in FIDELITY_TOLERANCE))
+    return table
 
 
 @app.command("cohort", epilog=_EPILOG)
@@ -624,7 +721,7 @@ def cohort_command(reports, out_path, budget, candidates, slots, stop_mismatch, 
 @app.command("train", epilog=_EPILOG)
 @click.argument("heart", type=click.Choice(BUILTIN))
 @click.option("--out", "out_path", type=click.Path(dir_okay=False), required=True, callback=_writable_file, help="the trained record (JSON; lvenv.trained.TrainedLO)")
-@click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default="dolfinx", show_default=True, help="the oracle to train against")
+@click.option("--backend", type=click.Choice(BACKENDS), default="dolfinx", show_default=True, help="the oracle to train against")
 @click.option("--arrangement", type=click.Choice(("parallel", "series")), default=None, help="multi-element arrangement (backend multielement)")
 @click.option("--mesh-size", type=click.FloatRange(min=1.0), default=None, help="FE mesh size h (mm; backend dolfinx) [default: the oracle's, 6]")
 @click.option("--budget", type=click.IntRange(min=16), default=960, show_default=True, help="MADS evaluations per active fit")
@@ -659,7 +756,7 @@ def train_command(heart, out_path, backend, arrangement, mesh_size, budget, dela
 @click.argument("heart", type=click.Choice(BUILTIN))
 @click.option("--case", type=click.Choice(("passive", "1", "2", "3", "closed")), default="2", show_default=True,
               help="passive inflation, Table 2 condition 1–3 (one beat), or the preset's closed loop")
-@click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default="dolfinx", show_default=True)
+@click.option("--backend", type=click.Choice(BACKENDS), default="dolfinx", show_default=True)
 @click.option("--mesh-size", type=click.FloatRange(min=1.0), default=DEFAULT_MESH_SIZE, show_default=True, help="FE mesh size h (mm; dolfinx)")
 @click.option("--beats", type=click.IntRange(min=1), default=1, show_default=True, help="beats of the closed loop")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix,
@@ -771,7 +868,7 @@ def campaign_group() -> None:
 @click.option("--n", "n", type=click.IntRange(min=1), default=None, help="anatomies for the regression (a new campaign) [default: the folder's]")
 @click.option("--held-out", type=click.IntRange(min=0), default=None, help="held-out anatomies from an independent hypercube (a new campaign)")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="sampling seed (a new campaign)")
-@click.option("--backend", type=click.Choice(("dolfinx", "multielement")), default=None, help="the oracle (a new campaign) [default: dolfinx]")
+@click.option("--backend", type=click.Choice(BACKENDS), default=None, help="the oracle (a new campaign) [default: dolfinx]")
 @click.option("--mesh-size", type=click.FloatRange(min=1.0), default=None, help="FE mesh size h (mm; a new campaign) [default: 6]")
 @click.option("--budget", type=click.IntRange(min=16), default=None, help="MADS evaluations per active fit (a new campaign) [default: 960]")
 @click.option("--timeout", "timeout_s", type=click.FloatRange(min=1.0), default=None, help="wall-clock limit of one FE solve, s (a new campaign) [default: 3600]")

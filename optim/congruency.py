@@ -59,6 +59,7 @@ from fe_oracle import cache as oracle_cache
 from fe_oracle.cases import Passive
 from lvenv import coupling, lo_model, multielement, presets
 from lvenv.geometry import Geometry, cavity_volume
+from lvenv.metrics import METRICS
 from lvenv.params import Arrangement, CellParams, Heart, LOParams, validate
 from lvenv.simulation import simulate
 from lvenv.status import is_usable
@@ -70,6 +71,7 @@ from optim.protocol import Bounds, padded, run
 
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "MAP_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
+    "difference_unit", "format_difference",
     "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "passive_residual", "fit_passive", "fit_active", "fit_maps",
     "train", "train_on", "check_fidelity",
 ]
@@ -442,6 +444,18 @@ FIDELITY_TOLERANCE = {
     "EF": ("abs", 0.02), "IVCT": ("abs", 0.010), "ET": ("abs", 0.010), "IVRT": ("abs", 0.010),
     "P_ao_sys": ("rel", 0.03), "P_ao_dia": ("rel", 0.03), "P_ao_pulse": ("rel", 0.03), "P_ao_mean": ("rel", 0.03),
 }
+
+
+def difference_unit(name: str) -> str:
+    """The unit in which FE − LO of the fidelity target ``name`` is shown: % for the pressures
+    (relative to the oracle), points for EF, the display unit (ms) for the phase durations."""
+    return "%" if FIDELITY_TOLERANCE[name][0] == "rel" else "points" if name == "EF" else METRICS[name].display_units
+
+
+def format_difference(name: str, diff: float) -> str:
+    """FE − LO of the fidelity target ``name`` (a :class:`Fidelity` row's difference, internal
+    units), signed, in :func:`difference_unit` without the unit."""
+    return f"{100 * diff:+.2f}" if difference_unit(name) in ("%", "points") else f"{METRICS[name].to_display(diff):+.1f}"
 
 
 @dataclasses.dataclass(frozen=True)

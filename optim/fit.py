@@ -71,6 +71,13 @@ class FitRow(MinimizeResult):
     wall_time_to_3pct: float | None
     compile_time: float
 
+    @classmethod
+    def of(cls, res: MinimizeResult, compile_time: float) -> FitRow:
+        """The row of the fit ``res``, which compiled for ``compile_time`` s."""
+        evals, wall = res.history.to_target(0.03)
+        fields = {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
+        return cls(**fields, evaluations_to_3pct=evals, wall_time_to_3pct=wall, compile_time=compile_time)
+
 
 def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, steps_per_beat: int = 500, max_beats: int = 60,
              rtol: float = 1e-4, scheme: str | None = None, plausibility: bool | Sequence[Band] = True) -> Any:
@@ -111,9 +118,11 @@ def fit_patients(
     options: Mapping[str, Mapping[str, Any]] | None = None,
     progress: bool | None = False,
     plausibility: bool | Sequence[Band] = True,
+    scheme: str | None = None,
 ) -> list[FitRow]:
     """Fit every patient with every method; rows in (patient, method) order. See module docstring.
-    ``plausibility``: the objective's physiological bands (:mod:`lvenv.plausibility`).
+    ``plausibility``: the objective's physiological bands (:mod:`lvenv.plausibility`); ``scheme``:
+    the env's integration scheme (:func:`make_env`).
 
     ``"lm"`` (:func:`optim.lm.fit_lm`) does not use the env: it runs at ``steps_per_beat`` fixed
     steps with its own budget and starts (`DEFAULT_OPTIONS`; an ``options["lm"]`` budget overrides
@@ -122,7 +131,7 @@ def fit_patients(
     rows: list[FitRow] = []
     for p in patients:
         patient = _patient(p)
-        venv = make_env(patient, num_envs, steps_per_beat, plausibility=plausibility) if set(methods) - {"lm"} else None
+        venv = make_env(patient, num_envs, steps_per_beat, scheme=scheme, plausibility=plausibility) if set(methods) - {"lm"} else None
         compile_time = warm_up(venv) if venv is not None else 0.0
         for method in methods:
             opts = {**DEFAULT_OPTIONS.get(method, {}), **dict((options or {}).get(method, {}))}
@@ -130,9 +139,7 @@ def fit_patients(
                 res, compiled = _fit_lm(patient, seed, steps_per_beat, plausibility, {"budget": budget, **opts})
             else:
                 res, compiled = minimize(venv, method, budget=budget, seed=seed, progress=progress, **opts), compile_time
-            evals, wall = res.history.to_target(0.03)
-            fields = {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
-            rows.append(FitRow(**fields, evaluations_to_3pct=evals, wall_time_to_3pct=wall, compile_time=compiled))
+            rows.append(FitRow.of(res, compiled))
         if venv is not None:
             venv.close()
     if out_dir is not None:
@@ -153,7 +160,8 @@ class CorrectionRound:
 
 def corrected_fit(patient: str | Patient, methods: Sequence[str] = ("cma",), rounds: int = 1, *, first: FitRow | None = None,
                   backend: str = "dolfinx", beats: int = 2, retune_budget: int = 480, num_envs: int = 16, budget: int = 480,
-                  seed: int = 0, steps_per_beat: int = 1000, plausibility: bool | Sequence[Band] = True,
+                  seed: int = 0, steps_per_beat: int = 1000, plausibility: bool | Sequence[Band] = True, scheme: str | None = None,
+                  options: Mapping[str, Mapping[str, Any]] | None = None, progress: bool | None = None,
                   **oracle_options: Any) -> list[CorrectionRound]:
     """``rounds`` + 1 rounds of: fit ``patient`` with ``methods`` (:func:`fit_patients`; the best
     fit), run the oracle ``backend`` at it for ``beats`` beats (`check_fidelity`), and, but in the
@@ -162,8 +170,10 @@ def corrected_fit(patient: str | Patient, methods: Sequence[str] = ("cma",), rou
     starts from this round's fit. (The targets leave directions of the parameters free: fits from
     one start land at other points along them in each round, where the refitted maps need not
     hold.) ``first``: the first round's fit, if the patient was fitted already (with its own
-    maps). Each round costs one oracle run (``beats`` beats; at h = 6 mm about 2 min a beat) and,
-    but the last, one refit of the maps (minutes on one core)."""
+    maps). ``scheme`` and ``options``: the fits' integration scheme and per-method options
+    (:func:`fit_patients`); ``progress``: the oracle's and the refits' progress bars. Each round
+    costs one oracle run (``beats`` beats; at h = 6 mm about 2 min a beat) and, but the last, one
+    refit of the maps (minutes on one core)."""
     patient = _patient(patient)
     rounds = integer("rounds", rounds, 0)
     out: list[CorrectionRound] = []
@@ -171,11 +181,12 @@ def corrected_fit(patient: str | Patient, methods: Sequence[str] = ("cma",), rou
         if r == 0 and first is not None:
             best = first
         else:
-            fits = fit_patients([patient], methods, num_envs, budget, seed, None, steps_per_beat, plausibility=plausibility)
+            fits = fit_patients([patient], methods, num_envs, budget, seed, None, steps_per_beat, plausibility=plausibility, scheme=scheme,
+                                options=options)
             best = min(fits, key=lambda row: row.mismatch)
         heart = patient.heart.replace(**best.parameters)
         report = check_fidelity(heart, backend, beats=beats, steps_per_beat=steps_per_beat, retune=MAP_NAMES if r < rounds else (),
-                                retune_budget=retune_budget, **oracle_options)
+                                retune_budget=retune_budget, progress=progress, **oracle_options)
         out.append(CorrectionRound({n: float(getattr(heart.lo, n)) for n in MAP_NAMES}, best, report))
         if r < rounds:
             lo = dataclasses.replace(heart.lo, **report.retuned["lo"])

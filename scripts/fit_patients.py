@@ -48,13 +48,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from fe_oracle import DEFAULT_MESH_SIZE
 from lvenv.cli import IMPORTANCE_PER_SAMPLE
 from lvenv.identification import ACTION_BOUNDS
 from lvenv.patients import builtin
 from lvenv.presets import LO_MODELS
 from lvenv.metrics import METRICS, display, header
 from lvenv.plausibility import report, resolve
-from optim.congruency import FIDELITY_TOLERANCE, MAP_NAMES, Fidelity, check_fidelity
+from optim.congruency import FIDELITY_TOLERANCE, MAP_NAMES, Fidelity, check_fidelity, difference_unit, format_difference
 from optim.fit import FitRow, corrected_fit, fit_patients, synthetic_recovery
 
 
@@ -162,7 +163,7 @@ def main() -> None:
     ap.add_argument("--synthetic", type=int, default=0, metavar="N", help="instead: synthetic recovery of N random truths")
     ap.add_argument("--method", default="cma", help="method of the synthetic recovery")
     ap.add_argument("--fidelity", action="store_true", help="run the 3-D oracle at each patient's best fit (optim.congruency.check_fidelity)")
-    ap.add_argument("--fidelity-mesh", type=float, default=6.0, help="FE mesh size h (mm) of the fidelity check")
+    ap.add_argument("--fidelity-mesh", type=float, default=DEFAULT_MESH_SIZE, help="FE mesh size h (mm) of the fidelity check")
     ap.add_argument("--fidelity-beats", type=int, default=2, help="FE beats from the LO steady state")
     ap.add_argument("--retune-maps", action="store_true",
                     help="with --fidelity: refit {mu1, mu2, gamma, delay} on each FE beat and compare again (the model's own floor there)")
@@ -222,19 +223,9 @@ def main() -> None:
         print(f"{patient}: the checks' table is in {path}")
 
 
-def _unit(name: str) -> str:
-    """The unit of FE − LO of target ``name`` in the fidelity table."""
-    return "%" if FIDELITY_TOLERANCE[name][0] == "rel" else "points" if name == "EF" else METRICS[name].display_units
-
-
-def _signed(name: str, diff: float) -> str:
-    """FE − LO of target ``name``, signed, in :func:`_unit`."""
-    return f"{100 * diff:+.2f}" if _unit(name) in ("%", "points") else f"{METRICS[name].to_display(diff):+.1f}"
-
-
 def _difference(name: str, diff: float) -> str:
     """FE − LO of target ``name`` as the fidelity checks show it, with its unit."""
-    return f"{_signed(name, diff)} {_unit(name)}"
+    return f"{format_difference(name, diff)} {difference_unit(name)}"
 
 
 def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False) -> dict[str, list[Check]]:
@@ -276,9 +267,9 @@ def fidelity_markdown(checks: list[Check], command: str, mesh_size: float, beats
     (OUT: outside `optim.congruency.FIDELITY_TOLERANCE`), and the fitted parameters; a check with
     maps refitted on its FE beat has a second row with them. Headed by ``command``."""
     names = list(checks[0].fit.parameters)
-    heads = ["maps", "fit", "C", *(f"{METRICS[t].label} ({_unit(t)})" for t in FIDELITY_TOLERANCE),
+    heads = ["maps", "fit", "C", *(f"{METRICS[t].label} ({difference_unit(t)})" for t in FIDELITY_TOLERANCE),
              *map(_param_head, names)]
-    tolerance = ", ".join(f"{METRICS[t].label} {_signed(t, bound)[1:]} {_unit(t)}" for t, (_, bound) in FIDELITY_TOLERANCE.items())
+    tolerance = ", ".join(f"{METRICS[t].label} {format_difference(t, bound)[1:]} {difference_unit(t)}" for t, (_, bound) in FIDELITY_TOLERANCE.items())
     lines = [f"Command: `{command}`. FE − LO at each fit (h = {mesh_size:g} mm, the last of {beats} FE beats against the LO "
              f"steady state); OUT: outside ± ({tolerance}).", "",
              "| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
@@ -289,7 +280,7 @@ def fidelity_markdown(checks: list[Check], command: str, mesh_size: float, beats
         if (again := check.fidelity.retuned) is not None:
             compared.append(("refitted on this FE beat", again["C"], again["rows"], again["within"]))
         for maps, c, diffs, within in compared:
-            cells = [f"{_signed(t, diffs[t][2])}{'' if within[t] else ' OUT'}" for t in FIDELITY_TOLERANCE]
+            cells = [f"{format_difference(t, diffs[t][2])}{'' if within[t] else ' OUT'}" for t in FIDELITY_TOLERANCE]
             lines.append("| " + " | ".join([maps, how, f"{100 * c:.2f} %", *cells, *fitted]) + " |")
     return "\n".join(lines) + "\n"
 

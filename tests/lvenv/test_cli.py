@@ -3,9 +3,12 @@
 import json
 
 import pytest
+from rich.console import Console
 
 from lvenv import cli
 from lvenv.identification import ACTION_BOUNDS
+from lvenv.patients import builtin
+from optim.congruency import FIDELITY_TOLERANCE, MAP_NAMES
 
 
 def test_presets_command_prints_both_tables(capsys):
@@ -40,6 +43,9 @@ def test_help_of_every_command_works(argv, capsys):
         (["fit", "normal", "--samples", "100"], "--samples applies to a posterior"),
         (["fit", "normal", "--map-draws", "4"], "the maps of 'normal' do not come from the anatomy regression"),
         (["fit", "normal", "--map-draws", "1"], "--map-draws needs at least 2 draws"),
+        (["fit", "normal", "--retune-maps"], "--retune-maps refits the maps on the oracle's beat: it needs --fidelity"),
+        (["fit", "normal", "--retune-maps", "--correct-maps", "2"], "--correct-maps refits them at every round but the last"),
+        (["fit", "normal", "--correct-maps", "11"], "11"),
         (["cohort", "r.csv", "--out", "o.csv", "--maps", "gp"], "'gp' is not one of"),
         (["fit", "normal", "--posterior", "mcmc"], "'mcmc' is not one of 'amortised', 'importance'"),
         (["fit", "p.json", "--model", "series3"], "--model series3: a patient record carries its own LO heart model"),
@@ -109,9 +115,12 @@ def test_long_commands_show_progress_on_a_terminal(monkeypatch, capsys):
 
 
 def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_fit(tmp_path, capsys):
+    """The fit with every report it can add; the map correction (`optim.fit.corrected_fit`) runs
+    against the multielement oracle, whose own test is in test_optim_fit."""
     plot, convergence = tmp_path / "fit.png", tmp_path / "convergence.pdf"
     argv = ["fit", "normal", "--method", "cma", "--budget", "16", "--num-envs", "8", "--steps-per-beat", "250", "--plot", str(plot),
-            "--convergence", str(convergence), "--identifiability", "--posterior", "importance", "--samples", "200", "--json"]
+            "--convergence", str(convergence), "--identifiability", "--posterior", "importance", "--samples", "200",
+            "--fidelity-backend", "multielement", "--correct-maps", "1", "--retune-budget", "16", "--json"]
     assert cli.main(argv) == cli.EXIT_OK
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and convergence.read_bytes()[:5] == b"%PDF-"
     payload = json.loads(capsys.readouterr().out)
@@ -131,6 +140,25 @@ def test_fit_command_reports_parameters_targets_and_compile_time_and_plots_the_f
     for name, median in post["median"].items():
         lo, hi = post["interval_90"][name]
         assert ACTION_BOUNDS[name].lo <= lo < median < hi <= ACTION_BOUNDS[name].hi, name
+    first, second = payload["correction"]
+    assert first["round"] == 0 and second["round"] == 1 and payload["fidelity"] == first["fidelity"]
+    assert first["parameters"] == payload["parameters"] and first["maps"] == {n: getattr(builtin("normal").heart.lo, n) for n in MAP_NAMES}
+    assert second["maps"] == first["fidelity"]["retuned"]["lo"] != first["maps"], "round 1 fits with the maps refitted on round 0's beat"
+    assert first["fidelity"]["retuned"]["C"] <= first["fidelity"]["C"], "the refit starts from the maps it improves on"
+    assert second["fidelity"]["retuned"] is None and second["evaluations"] == 16 and second["parameters"] != first["parameters"]
+    assert set(second["fidelity"]["rows"]) == set(FIDELITY_TOLERANCE) and second["fidelity"]["provenance"]["backend"] == "multielement"
+    console = Console(record=True, width=300)
+    console.print(cli._correction_table(payload["correction"], "multielement", 6.0))
+    rows = [line for line in console.export_text().splitlines() if line.startswith("│")]
+    assert [row.split("│")[1].strip() for row in rows] == ["0", "1"]
+    for row, step in zip(rows, payload["correction"]):
+        cells = [c.strip() for c in row.split("│")[1:-1]]
+        assert cells[6] == f"{100 * step['fidelity']['C']:.2f}" and sum(c.endswith("OUT") for c in cells) == list(step["fidelity"]["within"].values()).count(False)
+    console.print(cli._fidelity_table(first["fidelity"], "multielement", 6.0))
+    text = console.export_text()
+    assert f"C {100 * first['fidelity']['C']:.2f} %" in text and f"C {100 * first['fidelity']['retuned']['C']:.2f} %" in text
+    rows = [line for line in text.splitlines() if line.startswith("│")]
+    assert len(rows) == len(FIDELITY_TOLERANCE) and all(len(row.split("│")) == 9 for row in rows), "LO, oracle, then both differences"
     assert cli.main(["fit", "nobody"]) == cli.EXIT_USAGE
     assert "nobody" in capsys.readouterr().err
 
