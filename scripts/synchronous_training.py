@@ -34,7 +34,7 @@ from scripts.train_presets import HEARTS  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=["normal"])
-    parser.add_argument("--mesh-size", type=float, default=6.0, help="oracle mesh size h (mm)")
+    parser.add_argument("--mesh-size", type=float, default=fe_oracle.DEFAULT_MESH_SIZE, help="oracle mesh size h (mm)")
     parser.add_argument("--budget", type=int, default=960)
     parser.add_argument("--activations", nargs="+", choices=fe_oracle.ACTIVATIONS, default=list(fe_oracle.ACTIVATIONS))
     parser.add_argument("--cell", nargs="*", default=[], metavar="NAME=VALUE", help="cell parameters to change, e.g. beta1=0")

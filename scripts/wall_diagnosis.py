@@ -61,6 +61,7 @@ from scipy.optimize import minimize
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
+import fe_oracle  # noqa: E402
 from lvenv import archive, cell, coupling, integrator, multielement, presets  # noqa: E402
 from lvenv.geometry import cavity_volume  # noqa: E402
 from lvenv.params import CellParams, Heart, LOParams, ranges  # noqa: E402
@@ -87,7 +88,6 @@ def fe_beat(geometry, condition: int, mesh_size: float, dt: float, path: pathlib
     """The FE beat with its wall record, from ``path`` or solved (and saved there)."""
     if path.exists():
         return archive.load(path, "wall-diagnosis beat")
-    import fe_oracle  # noqa: F401  (dolfinx_solver first)
     from fe_oracle.dolfinx_backend import run_beat
     from fe_oracle.material import Guccione
 
@@ -238,7 +238,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS))
     parser.add_argument("--conditions", nargs="+", type=int, choices=congruency.CONDITIONS, default=list(congruency.CONDITIONS))
-    parser.add_argument("--mesh-size", type=float, default=6.0, help="oracle mesh size h (mm)")
+    parser.add_argument("--mesh-size", type=float, default=fe_oracle.DEFAULT_MESH_SIZE, help="oracle mesh size h (mm)")
     parser.add_argument("--dt", type=float, default=0.005, help="oracle time step (s)")
     parser.add_argument("--out", default="out/diagnosis", help="folder of wall.md, wall.png and the FE beats (wall/, resumed from)")
     args = parser.parse_args()
