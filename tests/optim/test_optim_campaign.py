@@ -53,11 +53,14 @@ def test_design_is_a_latin_hypercube_inside_the_box_and_reproducible():
     assert rows == campaign.design(20, held_out=4, seed=1) and rows != campaign.design(20, held_out=4, seed=2)
 
 
-@pytest.fixture
-def jit_cache(tmp_path, monkeypatch):
-    """A compilation cache of the test's own for the campaign's processes (module docstring of
-    `optim.campaign`): the solves then compile the LO programs once, as on a user's machine."""
-    monkeypatch.setenv("LVENV_JIT_CACHE", str(tmp_path / "jax"))
+@pytest.fixture(scope="module")
+def jit_cache(tmp_path_factory):
+    """A compilation cache of this module's own for the campaigns' processes (module docstring of
+    `optim.campaign`): the solves compile the LO programs once, and a later test's processes read
+    them, as a user's second campaign does."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("LVENV_JIT_CACHE", str(tmp_path_factory.mktemp("jax")))
+        yield
 
 
 def test_killed_campaign_resumes_with_identical_results_and_recomputes_nothing(tmp_path, jit_cache):
