@@ -315,3 +315,18 @@ def test_a_budget_below_one_batch_is_a_usage_error_naming_the_field(monkeypatch,
     assert cli.main(["fit", "normal", "--budget", "16", "--num-envs", "32"]) == cli.EXIT_USAGE
     err = capsys.readouterr().err
     assert "budget = 16 evaluations is below one batch of 32" in err and "Traceback" not in err
+
+
+def test_an_oracle_that_does_not_converge_keeps_the_fit_and_exits_1(monkeypatch, capsys):
+    import fe_oracle
+
+    def diverging(*args, **kwargs):
+        raise fe_oracle.OracleDidNotConverge("Newton diverged", time=0.31, residual=2.5e3, log=[])
+
+    monkeypatch.setattr(fe_oracle, "run", diverging)
+    argv = ["fit", "normal", "--method", "cma", "--budget", "16", "--num-envs", "8", "--steps-per-beat", "250", "--fidelity", "--json"]
+    assert cli.main(argv) == cli.EXIT_FAILED
+    captured = capsys.readouterr()
+    payload = json.loads(captured.out)
+    assert set(payload["parameters"]) == {"tau2", "Sa", "R2", "R3", "C", "Cat"} and "fidelity" not in payload
+    assert payload["fidelity_error"].startswith("Newton diverged (at t = 0.31") and "Traceback" not in captured.err
