@@ -1,9 +1,10 @@
 """JAX's persistent compilation cache, so that a new process does not recompile the LO heart.
 
-A fit compiles the env's reset and step (about 10–15 s on a 2-core CPU) in every new process.
-With the cache on, XLA's compiled programs are stored on disk, keyed by the program, the JAX
-and XLA versions and the device, and a later process with the same program loads them instead
-(``README``, "Fast cold start", has the measured times). Tracing still runs in every process.
+A fit compiles the env's step, which also resets (about 10 s on a 2-core CPU), in every new
+process. With the cache on, XLA's compiled programs are stored on disk, keyed by the program,
+the JAX and XLA versions and the device, and a later process with the same program loads them
+instead (`scripts/bench_cold_start.py` measures the times; the benchmarks page shows them).
+Tracing still runs in every process.
 
 Directory: ``$LVENV_JIT_CACHE`` if set, else ``$XDG_CACHE_HOME/lvenv/jax`` (default
 ``~/.cache/lvenv/jax``). ``LVENV_JIT_CACHE=off`` turns it off. The ``lvenv`` CLI calls

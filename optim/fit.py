@@ -95,7 +95,7 @@ def make_env(patient: str | Patient | Sequence[Patient], num_envs: int = 16, ste
 
 
 def warm_up(venv: Any) -> float:
-    """Compile the env's reset and step once (s); later runs on this env pay no JIT cost."""
+    """Compile the env's step, which also resets, once (s); later runs on this env pay no JIT cost."""
     start = time.perf_counter()
     _, info = venv.reset(seed=0)
     values = np.stack([info["parameters"][n] for n in venv.unwrapped.action_names], axis=1)

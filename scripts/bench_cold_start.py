@@ -4,8 +4,8 @@ in the same run (JSON out).
     python scripts/bench_cold_start.py [--repeats 3] [--patient normal]
 
 Each measurement is a new process running `lvenv fit PATIENT --method cma --json`; its
-`compile_time_s` (the env's first reset and step: tracing, compilation or loading from the cache,
-and the first evaluation) and its whole wall time are recorded. Sides: `cold` (a fresh, empty
+`compile_time_s` (the env's first reset, which compiles its step, and first step: tracing,
+compilation or loading from the cache, and the first evaluation) and its whole wall time are recorded. Sides: `cold` (a fresh, empty
 cache directory: the first process of a new machine), `warm` (the same directory afterwards) and
 `off` (`--no-jit-cache`). Medians over `--repeats` processes; ratios against `off`.
 """

@@ -1,8 +1,8 @@
 """``LVHeartVectorEnv``: N LO hearts stepped as one jitted, vmapped-by-layout batch (DESIGN §2).
 
-A thin stateful shell around :mod:`lvenv.env.core`: the pure ``reset``/``step`` are jitted once
-(per static configuration, shared by all instances); a step is one device call plus one
-transfer of its results. Members may hold
+A thin stateful shell around :mod:`lvenv.env.core`: the pure ``step`` is jitted once (per static
+configuration and size, shared by all instances) and serves the resets too, as a step of members
+that all need a reset; a step is one device call plus one transfer of its results. Members may hold
 different patients (``patient=[...]``), so one env can fit a cohort. Batches are padded to a
 multiple of the device count and sharded over the CPU cores or GPUs (:mod:`lvenv.devices`).
 """
@@ -36,7 +36,7 @@ __all__ = ["LVHeartVectorEnv", "MAX_ENVS", "TRACES", "STATE_FIELDS", "info_metri
 #: Fields of :meth:`LVHeartVectorEnv.get_state` (host NumPy arrays, member axis first).
 STATE_FIELDS = ("y", "steps", "needs_reset", "key", "parameters")
 
-#: Traces of the jitted reset/step per static configuration. Jitting once at module level lets
+#: Traces of the jitted step per static configuration. Jitting once at module level lets
 #: every env with the same configuration and size share one compiled step.
 TRACES: collections.Counter = collections.Counter()
 
@@ -61,8 +61,14 @@ def _with_key(fn):
     return keyed
 
 
-_reset_jit = jax.jit(_counted(_with_key(core.reset)), static_argnames="config")
+#: One compiled program per configuration and size: :meth:`LVHeartVectorEnv.reset` is a step of
+#: members that all need a reset (`core.step` then runs `core.reset`'s simulation: each member's
+#: own parameters from its cold start), so a reset compiles nothing that the steps do not use.
 _step_jit = jax.jit(_counted(_with_key(core.step)), static_argnames="config")
+
+
+#: Keys of a step's info that a reset's lacks.
+_STEP_ONLY = ("mismatch", "clipped", "reset")
 
 
 def info_metrics(info: dict[str, Any]) -> np.ndarray:
@@ -189,7 +195,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
 
     @property
     def trace_count(self) -> int:
-        """How often the jitted reset/step were traced for this env's configuration (all instances)."""
+        """How often the jitted step (which also resets) was traced for this env's configuration (all instances)."""
         return TRACES[self.config]
 
     def _info(self, raw: dict[str, Any]) -> dict[str, Any]:
@@ -222,11 +228,20 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         super().reset(seed=seed)
         if seed is None:
             seed = int(self.np_random.integers(2**31 - 1))
-        self._key, (state, obs, info) = _reset_jit(jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1)), self._params, config=self.config)
+        fresh = self._cold_state(needs_reset=True)
+        actions, _ = shard_members(np.zeros((self.num_envs, len(self.action_names))), self.num_envs, batch_axis_of=lambda leaf: 0)
+        key = jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1))
+        self._key, (state, obs, _, _, _, info) = _step_jit(key, fresh, actions, self._params, config=self.config)
         self._state = state
-        obs, info = jax.device_get((obs, info))
+        obs, info = jax.device_get((obs, {k: v for k, v in info.items() if k not in _STEP_ONLY}))
         self._parameters = np.asarray(info["parameters"])[: self.num_envs]
         return np.asarray(obs)[: self.num_envs], self._info(info)
+
+    def _cold_state(self, needs_reset: bool) -> core.EnvState:
+        """Every member at its patient's cold start, as device arrays laid out as a step leaves them."""
+        n = self.num_envs
+        cold = core.EnvState(y=np.asarray(self._host_params.y_cold), steps=np.zeros(n, np.int32), needs_reset=np.full(n, needs_reset))
+        return jax.tree.map(jax.device_put, shard_members(cold, n)[0])
 
     def start_cold(self, *, seed: int = 0) -> None:
         """Put every member at its patient's cold start without simulating: the next :meth:`step`
@@ -235,9 +250,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         :func:`optim.cohort.fit_reports` fills every member with :meth:`replace_patients` first.
         ``seed`` seeds the measurement noise's key, as :meth:`reset`'s does."""
         super().reset(seed=seed)
-        n = self.num_envs
-        cold = core.EnvState(y=np.asarray(self._host_params.y_cold), steps=np.zeros(n, np.int32), needs_reset=np.zeros(n, bool))
-        self._state = jax.tree.map(jax.device_put, shard_members(cold, n)[0])  # device arrays, as a reset leaves them
+        self._state = self._cold_state(needs_reset=False)
         self._key = jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1))
         self._parameters = np.asarray(self.config.actions.current(self._host_params.heart))
 
