@@ -607,7 +607,7 @@ def _oracle_title(fid: dict, backend: str, mesh_size: float) -> str:
 def _fidelity_table(fid: dict, backend: str, mesh_size: float) -> Table:
     """``fit --fidelity``: LO, oracle and oracle − LO per target, also with the maps refitted on
     the oracle's beat if ``fid`` (:meth:`Fidelity.to_dict`) has them."""
-    from optim.congruency import difference_unit, format_difference
+    from optim.congruency import format_difference
 
     again = fid["retuned"]
     title = f"fidelity against the {_oracle_title(fid, backend, mesh_size)}: C {100 * fid['C']:.2f} %, {'within' if fid['ok'] else 'OUTSIDE'} tolerance"
@@ -617,10 +617,10 @@ def _fidelity_table(fid: dict, backend: str, mesh_size: float) -> Table:
     for col in ("target", "LO", "oracle", "oracle − LO", "", *(("refitted maps: oracle − LO", "") if again is not None else ())):
         table.add_column(col, justify="right")
     for name, (lo, fe, diff) in fid["rows"].items():
-        cells = [header(name), display(name, lo), display(name, fe), f"{format_difference(name, diff)} {difference_unit(name)}",
+        cells = [header(name), display(name, lo), display(name, fe), format_difference(name, diff, unit=True),
                  "ok" if fid["within"][name] else "OUT"]
         if again is not None:
-            cells += [f"{format_difference(name, again['rows'][name][2])} {difference_unit(name)}", "ok" if again["within"][name] else "OUT"]
+            cells += [format_difference(name, again["rows"][name][2], unit=True), "ok" if again["within"][name] else "OUT"]
         table.add_row(*cells)
     return table
 

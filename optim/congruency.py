@@ -452,10 +452,11 @@ def difference_unit(name: str) -> str:
     return "%" if FIDELITY_TOLERANCE[name][0] == "rel" else "points" if name == "EF" else METRICS[name].display_units
 
 
-def format_difference(name: str, diff: float) -> str:
+def format_difference(name: str, diff: float, unit: bool = False) -> str:
     """FE − LO of the fidelity target ``name`` (a :class:`Fidelity` row's difference, internal
-    units), signed, in :func:`difference_unit` without the unit."""
-    return f"{100 * diff:+.2f}" if difference_unit(name) in ("%", "points") else f"{METRICS[name].to_display(diff):+.1f}"
+    units), signed, in :func:`difference_unit`; followed by that unit if ``unit``."""
+    text = f"{100 * diff:+.2f}" if difference_unit(name) in ("%", "points") else f"{METRICS[name].to_display(diff):+.1f}"
+    return f"{text} {difference_unit(name)}" if unit else text
 
 
 @dataclasses.dataclass(frozen=True)

@@ -223,11 +223,6 @@ def main() -> None:
         print(f"{patient}: the checks' table is in {path}")
 
 
-def _difference(name: str, diff: float) -> str:
-    """FE − LO of target ``name`` as the fidelity checks show it, with its unit."""
-    return f"{format_difference(name, diff)} {difference_unit(name)}"
-
-
 def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False) -> dict[str, list[Check]]:
     """The 3-D oracle at each patient's best fit (of the LO heart ``model``): LO, FE and their
     difference per target; with ``retune_maps`` also FE − LO with the maps refitted on that FE beat.
@@ -297,9 +292,9 @@ def print_check(title: str, maps: dict, rep, parameters: dict | None = None) -> 
         print(f"  maps refitted on this FE beat ({', '.join(f'{n} {again['lo'][n]:.4g}' for n in MAP_NAMES)}; "
               f"before: {', '.join(f'{n} {maps[n]:.4g}' for n in MAP_NAMES)}): C {100 * again['C']:.2f} %")
     for name, (lo, fe, diff) in rep.rows.items():
-        line = f"  {header(name):18s} LO {_show(name, lo):>7s}  FE {_show(name, fe):>7s}  FE − LO {_difference(name, diff):>12s}  {'ok' if rep.within[name] else 'OUT'}"
+        line = f"  {header(name):18s} LO {_show(name, lo):>7s}  FE {_show(name, fe):>7s}  FE − LO {format_difference(name, diff, unit=True):>12s}  {'ok' if rep.within[name] else 'OUT'}"
         if again is not None:
-            line += f"  | refitted maps: FE − LO {_difference(name, again['rows'][name][2]):>12s}  {'ok' if again['within'][name] else 'OUT'}"
+            line += f"  | refitted maps: FE − LO {format_difference(name, again['rows'][name][2], unit=True):>12s}  {'ok' if again['within'][name] else 'OUT'}"
         print(line)
 
 
