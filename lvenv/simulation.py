@@ -26,7 +26,9 @@ extrapolating the beat map's fixed point every second beat (:func:`run_beats`).
 each device its own loops, and on the CPU blocks of at most :data:`lvenv.devices.CPU_BLOCK`
 members one after the other, so that a block's working set stays in cache, or, for the adaptive
 scheme to steady state, the device's members queued through :func:`lvenv.devices.queue_lanes`
-lanes (:func:`run_beats_queued`). :data:`run_beats_jit` is its jitted form.
+lanes (:func:`run_beats_queued`). :data:`run_beats_jit` is its jitted form; ``max_beats`` is an
+argument of its program, not a setting it is compiled for, so calls that differ only in their
+number of beats share one compiled program.
 
 A multi-element heart (:class:`lvenv.multielement.ElementParams`, ``Heart.elements``) runs
 through the same loops with its flat state of 7 n + 4 rows: :func:`beat` calls
@@ -503,31 +505,32 @@ def run_beats_parallel(p: ModelParams, y0: jax.Array, rtol, **settings):
     """
     n_members = y0.shape[-1]
     used, blocks, block = layout(n_members)
+    limit = jnp.asarray(settings.pop("max_beats"))  # an argument of the loops, not a setting to compile for
     run = functools.partial(run_beats, **settings)
     if used * blocks * block != n_members:
-        return run(p, y0, rtol)
+        return run(p, y0, rtol, max_beats=limit)
 
     lanes = queue_lanes(blocks * block) if settings["steady"] and settings.get("scheme") == "adaptive" else None
     queued = lanes is not None and blocks > 1
 
-    def local(p, y0, rtol):
+    def local(p, y0, rtol, limit):
         if queued:
-            return run_beats_queued(p, y0, rtol, lanes=lanes, **settings)
+            return run_beats_queued(p, y0, rtol, lanes=lanes, max_beats=limit, **settings)
         if blocks == 1:
-            return run(p, y0, rtol)
+            return run(p, y0, rtol, max_beats=limit)
         split = lambda x: jnp.moveaxis(x.reshape(x.shape[:-1] + (blocks, block)), -2, 0)
-        out = jax.lax.map(lambda args: run(*args, rtol), (jax.tree.map(split, p), split(y0)))
+        out = jax.lax.map(lambda args: run(*args, rtol, max_beats=limit), (jax.tree.map(split, p), split(y0)))
         return jax.tree.map(lambda x: jnp.moveaxis(x, 0, -2).reshape(x.shape[1:-1] + (blocks * block,)), out)
 
     if used == 1:
-        return local(p, y0, rtol)
+        return local(p, y0, rtol, limit)
     last = lambda tree: jax.tree.map(lambda x: PartitionSpec(*([None] * (x.ndim - 1)), "members"), tree)
-    out_specs = last(jax.eval_shape(run, p, y0, rtol))
-    return jax.shard_map(local, mesh=member_mesh(), in_specs=(last(p), last(y0), PartitionSpec()), out_specs=out_specs, check_vma=False)(p, y0, rtol)
+    out_specs = last(jax.eval_shape(functools.partial(run, max_beats=limit), p, y0, rtol))
+    return jax.shard_map(local, mesh=member_mesh(), in_specs=(last(p), last(y0), PartitionSpec(), PartitionSpec()), out_specs=out_specs,
+                         check_vma=False)(p, y0, rtol, limit)
 
 
-run_beats_jit = jax.jit(run_beats_parallel, static_argnames=("steps", "max_beats", "steady", "record", "scheme", "step_tol", "acceleration",
-                                                                   "volume_trace"))
+run_beats_jit = jax.jit(run_beats_parallel, static_argnames=("steps", "steady", "record", "scheme", "step_tol", "acceleration", "volume_trace"))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -113,3 +113,18 @@ def test_anderson_acceleration_reaches_the_same_steady_state_in_fewer_beats():
     y0 = model.initial_state(model.model_params(lvenv.stack([closed])))[:, 0]
     volume = lambda y: total_volume(y[model.IDX_V], y[model.IDX_PC], y[model.IDX_PAT], closed.circulation)
     assert res.status == "ok" and abs(volume(res.final_state) / volume(y0) - 1) < 1e-6
+
+
+def test_the_number_of_beats_is_an_argument_of_the_compiled_loops_not_a_setting():
+    """`simulation.run_beats_jit` compiles once for runs that differ only in ``beats`` or
+    ``max_beats`` (a steps-per-beat no other test uses keeps the count its own), and each run
+    still stops where it was told."""
+    from lvenv.simulation import run_beats_jit
+
+    heart = presets.normal()
+    before = run_beats_jit._cache_size()
+    one, three = (lvenv.simulate(heart, beats=n, steps_per_beat=333) for n in (1, 3))
+    capped, free = (lvenv.simulate(heart, max_beats=n, steps_per_beat=333, traces=False) for n in (2, 200))
+    assert run_beats_jit._cache_size() == before + 2, "one program for beats = 1 and 3, one for steady state within 2 and 200 beats"
+    assert (one.beats, three.beats, capped.beats) == (1, 3, 2) and one.metrics["EF"] != three.metrics["EF"]
+    assert capped.status == "not_converged" and free.status == "ok" and 2 < free.beats < 200
