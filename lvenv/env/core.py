@@ -2,8 +2,9 @@
 
 gymnax style: parameters are passed in (so per-member patients are free), the PRNG key is an
 argument (it only draws the optional measurement noise), and the Gymnasium classes in
-:mod:`lvenv.env.vector` / :mod:`lvenv.env.single` jit these once; :mod:`lvenv.env.functional`
-exposes them per member for JAX code that jits and vmaps the heart itself. There is no Python
+:mod:`lvenv.env.vector` / :mod:`lvenv.env.single` jit ``step`` once and reset through it (a step
+of members that all need a reset runs exactly ``reset``'s simulation); :mod:`lvenv.env.functional`
+exposes both per member for JAX code that jits and vmaps the heart itself. There is no Python
 loop over members and no host sync inside.
 
 One step evaluates one parameter set per member to steady state with the LO heart
