@@ -571,12 +571,10 @@ def _check_against_oracle(payload: dict, record: Patient, res, heart, method: st
     """``fit --fidelity`` / ``--correct-maps``: the oracle at the fit ``res`` into ``payload``
     (``fidelity``; with ``correct_maps`` also ``correction``, a record per round). Returns True if
     the oracle failed (``payload["fidelity_error"]`` says how); the fit is kept either way."""
-    try:
-        from fe_oracle import OracleDidNotConverge
-        from optim.congruency import MAP_NAMES, check_fidelity
-        from optim.fit import FitRow, corrected_fit
-    except ImportError as err:
-        raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
+    from fe_oracle import OracleDidNotConverge
+    from optim.congruency import MAP_NAMES, check_fidelity
+    from optim.fit import FitRow, corrected_fit
+
     oracle = {"mesh_size": mesh_size} if backend == "dolfinx" else {}
     try:
         if not correct_maps:
@@ -628,17 +626,17 @@ def _fidelity_table(fid: dict, backend: str, mesh_size: float) -> Table:
 def _correction_table(rounds: list[dict], backend: str, mesh_size: float) -> Table:
     """``fit --correct-maps``: per round, the maps, the fit's mismatch, C and oracle − LO per
     target (OUT: outside the tolerance); the parameters of the last round's fit follow it."""
-    from optim.congruency import FIDELITY_TOLERANCE, difference_unit, format_difference
+    from optim.congruency import ACTIVE_NAMES, FIDELITY_TOLERANCE, difference_unit, format_difference
 
     last = rounds[-1]["fidelity"]
     table = Table(title=f"maps corrected against the {_oracle_title(last, backend, mesh_size)}: round 0 has the heart's own maps, each next "
                         f"round the maps refitted on the last round's beat; last round C {100 * last['C']:.2f} %, "
                         f"{'within' if last['ok'] else 'OUTSIDE'} tolerance", title_justify="left")
-    for col in ("round", "mu1", "mu2", "gamma", "delay (ms)", "mismatch (%)", "C (%)", *(f"{METRICS[t].label} ({difference_unit(t)})" for t in FIDELITY_TOLERANCE)):
+    for col in ("round", *ACTIVE_NAMES, "delay (ms)", "mismatch (%)", "C (%)", *(f"{METRICS[t].label} ({difference_unit(t)})" for t in FIDELITY_TOLERANCE)):
         table.add_column(col, justify="right")
     for step in rounds:
         fid, maps = step["fidelity"], step["maps"]
-        table.add_row(str(step["round"]), *(f"{maps[n]:.4g}" for n in ("mu1", "mu2", "gamma")), f"{1000 * maps['delay']:.1f}",
+        table.add_row(str(step["round"]), *(f"{maps[n]:.4g}" for n in ACTIVE_NAMES), f"{1000 * maps['delay']:.1f}",
                       f"{100 * step['mismatch']:.2f}", f"{100 * fid['C']:.2f}",
                       *(format_difference(t, fid["rows"][t][2]) + ("" if fid["within"][t] else " OUT") for t in FIDELITY_TOLERANCE))
     return table
