@@ -10,12 +10,16 @@ included, which then died with a traceback each. The local workers start with SI
 (they inherit it, :func:`_interrupts_ignored`), so this process alone handles it: it raises
 ``KeyboardInterrupt``, the ``with`` block closes the cluster, and the workers are shut down
 with it. A worker's own subprocess that must stop on Ctrl-C resets SIGINT itself (the FE solve
-of ``python -m fe_oracle.solve``).
+of ``python -m fe_oracle.solve``). A local worker closed amid a task logs a warning that the
+task "ended with CancelledError" (the worker's state machine: it happens only in
+``Worker.close``); the local workers drop that one record (:func:`quiet_close`, run on each as the cluster starts), so that an
+interrupted command ends with its own message alone.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import signal
 import threading
@@ -23,12 +27,24 @@ from collections.abc import Iterator
 
 from lvenv.validation import InputError, integer
 
-__all__ = ["client", "default_workers"]
+__all__ = ["client", "default_workers", "quiet_close"]
 
 
 def default_workers() -> int:
     """Worker processes of a default ``LocalCluster``: one per core this process may use."""
     return max(1, len(os.sched_getaffinity(0)))
+
+
+def _not_a_cancelled_close(record: logging.LogRecord) -> bool:
+    return not record.getMessage().endswith("ended with CancelledError")
+
+
+def quiet_close() -> None:
+    """In a Dask worker: its state machine drops the warning that a task "ended with
+    CancelledError" as the worker closes amid it (module docstring); its other records are kept."""
+    log = logging.getLogger("distributed.worker.state_machine")
+    if _not_a_cancelled_close not in log.filters:
+        log.addFilter(_not_a_cancelled_close)
 
 
 @contextlib.contextmanager
@@ -65,4 +81,5 @@ def client(workers: int | None = None, scheduler: str | None = None, *, timeout_
     with _interrupts_ignored():
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
     with cluster, Client(cluster) as handle:
+        handle.run(quiet_close)
         yield handle

@@ -832,21 +832,15 @@ def run_cohort(
 
 def _distributed(pending: list[Report], options: CohortOptions, write: Callable[[dict[str, Any]], None],
                  workers: int, scheduler: str | None) -> None:
-    from dask.distributed import Client, LocalCluster, as_completed
+    from dask.distributed import as_completed
 
-    cluster = None
-    if scheduler is None:
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
-    client = Client(scheduler if scheduler is not None else cluster)
-    try:
-        futures = [client.submit(_fit_chunk, chunk, options, pure=False) for chunk in _chunks(pending, options.slots)]
+    from optim.cluster import client
+
+    with client(workers, scheduler) as handle:
+        futures = [handle.submit(_fit_chunk, chunk, options, pure=False) for chunk in _chunks(pending, options.slots)]
         for future in as_completed(futures):
             for result in future.result():
                 write(result)
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
 
 
 def summarise(out_path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -196,6 +196,8 @@ def test_a_dask_local_cluster_gives_the_same_fits_as_one_process(reports_csv, tm
     assert summary["fitted"] == 4
     assert _rows(split) == _rows(single)
     assert json.loads((tmp_path / "split.csv.json").read_text())["options"]["slots"] == 1
+    with pytest.raises(InputError, match=r"scheduler = 'localhost:8786' is not a Dask scheduler address"):
+        run_cohort(reports_csv, tmp_path / "elsewhere.csv", options, scheduler="localhost:8786")
 
 
 def test_a_multi_element_base_heart_takes_a_rows_geometry_with_its_own_regressions_maps_and_onsets(tmp_path):
