@@ -12,8 +12,8 @@ included, which then died with a traceback each. The local workers start with SI
 with it. A worker's own subprocess that must stop on Ctrl-C resets SIGINT itself (the FE solve
 of ``python -m fe_oracle.solve``). A local worker closed amid a task logs a warning that the
 task "ended with CancelledError" (the worker's state machine: it happens only in
-``Worker.close``); the local workers drop that one record (:func:`quiet_close`, run on each as the cluster starts), so that an
-interrupted command ends with its own message alone.
+``Worker.close``); the local workers drop that one record (:func:`quiet_close`, run on each
+as the cluster starts), so that an interrupted command ends with its own message alone.
 """
 
 from __future__ import annotations
