@@ -53,7 +53,17 @@ def test_design_is_a_latin_hypercube_inside_the_box_and_reproducible():
     assert rows == campaign.design(20, held_out=4, seed=1) and rows != campaign.design(20, held_out=4, seed=2)
 
 
-def test_killed_campaign_resumes_with_identical_results_and_recomputes_nothing(tmp_path):
+@pytest.fixture(scope="module")
+def jit_cache(tmp_path_factory):
+    """A compilation cache of this module's own for the campaigns' processes (module docstring of
+    `optim.campaign`): the solves compile the LO programs once, and a later test's processes read
+    them, as a user's second campaign does."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("LVENV_JIT_CACHE", str(tmp_path_factory.mktemp("jax")))
+        yield
+
+
+def test_killed_campaign_resumes_with_identical_results_and_recomputes_nothing(tmp_path, jit_cache):
     directory, cache = tmp_path / "camp", tmp_path / "cache"
     proc = subprocess.Popen(_tiny_args(directory, cache, 2), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     deadline = time.monotonic() + 240
@@ -89,7 +99,7 @@ def test_killed_campaign_resumes_with_identical_results_and_recomputes_nothing(t
         assert trained.congruency["C"] == row["C"]
 
 
-def test_local_cluster_runs_the_campaign_and_a_crashed_fe_solve_fails_only_its_anatomy(tmp_path):
+def test_local_cluster_runs_the_campaign_and_a_crashed_fe_solve_fails_only_its_anatomy(tmp_path, jit_cache):
     from dask.distributed import LocalCluster
 
     directory = tmp_path / "camp"
