@@ -115,6 +115,7 @@ from lvenv.simulation import SCHEMES
 from lvenv.status import EF_MIN, is_usable
 from lvenv.units import kpa_to_mmhg, mmhg_to_kpa
 from lvenv.validation import InputError, choice, integer, real
+from optim.cluster import client
 from optim.cmaes import CmaEs, CmaOptions
 from optim.fit import make_env
 from optim.minimize import unit_bounds
@@ -833,8 +834,6 @@ def run_cohort(
 def _distributed(pending: list[Report], options: CohortOptions, write: Callable[[dict[str, Any]], None],
                  workers: int, scheduler: str | None) -> None:
     from dask.distributed import as_completed
-
-    from optim.cluster import client
 
     with client(workers, scheduler) as handle:
         futures = [handle.submit(_fit_chunk, chunk, options, pure=False) for chunk in _chunks(pending, options.slots)]
