@@ -35,7 +35,7 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-__all__ = ["request_cpu_devices", "shard_members", "padded_size", "layout", "member_mesh", "queue_lanes", "MIN_MEMBERS_PER_DEVICE", "LANES", "CPU_BLOCK",
+__all__ = ["request_cpu_devices", "shard_members", "member_shardings", "padded_size", "layout", "member_mesh", "queue_lanes", "MIN_MEMBERS_PER_DEVICE", "LANES", "CPU_BLOCK",
            "QUEUE_MEMBERS_PER_LANE"]
 
 MIN_MEMBERS_PER_DEVICE = 64
@@ -132,15 +132,38 @@ def member_mesh() -> Mesh:
     return Mesh(np.array(jax.devices()), ("members",))
 
 
+def member_shardings(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim - 1):
+    """The sharding :func:`shard_members` gives each leaf of ``tree`` (a tree of the same
+    structure): split along its batch axis over :func:`member_mesh`, or on every device whole
+    where ``batch_axis_of`` says None. None when a batch of ``n_members`` stays on one device.
+
+    A jitted program is compiled again for inputs laid out differently, so a caller that feeds
+    a program's outputs back into it (:class:`lvenv.env.LVHeartVectorEnv`'s state and key) puts
+    them back in these shardings first: XLA lays out some outputs otherwise (a replicated key, a
+    constant flag)."""
+    if _devices_used(n_members) == 1:
+        return None
+    mesh = member_mesh()
+
+    def sharding(leaf):
+        axis = batch_axis_of(leaf)
+        spec = [None] * np.ndim(leaf)
+        if axis is not None:
+            spec[axis] = "members"
+        return NamedSharding(mesh, PartitionSpec(*spec))
+
+    return jax.tree.map(sharding, tree)
+
+
 def shard_members(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim - 1):
     """Pad every leaf along its batch axis to :func:`padded_size` and shard it over the devices
-    (small batches, fewer than :data:`MIN_MEMBERS_PER_DEVICE` per device, stay on one).
-    Returns ``(tree, padded_size)``."""
+    (small batches, fewer than :data:`MIN_MEMBERS_PER_DEVICE` per device, stay on one;
+    :func:`member_shardings`). Returns ``(tree, padded_size)``."""
     size = padded_size(n_members)
-    used = _devices_used(n_members)
+    tree = jax.tree.map(np.asarray, tree)
+    shardings = member_shardings(tree, n_members, batch_axis_of)
 
     def pad(leaf):
-        leaf = np.asarray(leaf)
         axis = batch_axis_of(leaf)
         if size == n_members:
             return leaf
@@ -148,14 +171,6 @@ def shard_members(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim - 1
         widths[axis] = (0, size - n_members)
         return np.pad(leaf, widths, mode="edge")
 
-    if used == 1:
+    if shardings is None:
         return jax.tree.map(pad, tree), size
-    mesh = member_mesh()
-
-    def place(leaf):
-        leaf = pad(leaf)
-        spec = [None] * leaf.ndim
-        spec[batch_axis_of(leaf)] = "members"
-        return jax.device_put(leaf, NamedSharding(mesh, PartitionSpec(*spec)))
-
-    return jax.tree.map(place, tree), size
+    return jax.tree.map(lambda leaf, sharding: jax.device_put(pad(leaf), sharding), tree, shardings), size

@@ -20,7 +20,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from lvenv import lo_model, status
-from lvenv.devices import shard_members
+from lvenv.devices import member_shardings, shard_members
 from lvenv.env import core
 from lvenv.env.spaces import ActionMap, observation_space
 from lvenv.identification import DEFAULT_ACTION_PARAMS
@@ -189,6 +189,9 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.obs_names = OBS_NAMES
         self._host_params = core.env_params(self.patients)
         self._params, self._padded = shard_members(self._host_params, num_envs)
+        # How every step takes its state and key (None on one device): as _cold_state lays them out.
+        self._layout = (member_shardings(self._cold_host_state(needs_reset=False), num_envs),
+                        member_shardings(jax.random.PRNGKey(0), num_envs, batch_axis_of=lambda leaf: None))
         self._state: core.EnvState | None = None
         self._key: jax.Array | None = None
         self._parameters: np.ndarray | None = None  # (num_envs, k) action parameters of the last step
@@ -230,18 +233,33 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
             seed = int(self.np_random.integers(2**31 - 1))
         fresh = self._cold_state(needs_reset=True)
         actions, _ = shard_members(np.zeros((self.num_envs, len(self.action_names))), self.num_envs, batch_axis_of=lambda leaf: 0)
-        key = jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1))
-        self._key, (state, obs, _, _, _, info) = _step_jit(key, fresh, actions, self._params, config=self.config)
+        self._key = jax.random.PRNGKey(integer("seed", seed, 0, 2**63 - 1))
+        state, obs, _, _, _, info = self._step(fresh, actions)
         self._state = state
         obs, info = jax.device_get((obs, {k: v for k, v in info.items() if k not in _STEP_ONLY}))
         self._parameters = np.asarray(info["parameters"])[: self.num_envs]
         return np.asarray(obs)[: self.num_envs], self._info(info)
 
-    def _cold_state(self, needs_reset: bool) -> core.EnvState:
-        """Every member at its patient's cold start, as device arrays laid out as a step leaves them."""
+    def _cold_host_state(self, needs_reset: bool) -> core.EnvState:
+        """Every member at its patient's cold start, as host arrays (batch last, not padded)."""
         n = self.num_envs
-        cold = core.EnvState(y=np.asarray(self._host_params.y_cold), steps=np.zeros(n, np.int32), needs_reset=np.full(n, needs_reset))
-        return jax.tree.map(jax.device_put, shard_members(cold, n)[0])
+        return core.EnvState(y=np.asarray(self._host_params.y_cold), steps=np.zeros(n, np.int32), needs_reset=np.full(n, needs_reset))
+
+    def _cold_state(self, needs_reset: bool) -> core.EnvState:
+        """Every member at its patient's cold start, as device arrays laid out as every step takes them."""
+        return jax.tree.map(jax.device_put, shard_members(self._cold_host_state(needs_reset), self.num_envs)[0])
+
+    def _step(self, state: core.EnvState, actions: jax.Array):
+        """The jitted step from ``state`` (advancing the env's key). The state and key go in laid
+        out as :meth:`_cold_state` lays them out (:func:`~lvenv.devices.member_shardings`; the key
+        on every device): XLA returns the key, and flags it finds constant, laid out otherwise,
+        and a step whose inputs were laid out otherwise would compile again."""
+        key = self._key
+        shardings, key_sharding = self._layout
+        if shardings is not None:
+            state, key = jax.device_put(state, shardings), jax.device_put(key, key_sharding)
+        self._key, out = _step_jit(key, state, actions, self._params, config=self.config)
+        return out
 
     def start_cold(self, *, seed: int = 0) -> None:
         """Put every member at its patient's cold start without simulating: the next :meth:`step`
@@ -265,7 +283,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         if self._state is None:
             raise gymnasium.error.ResetNeeded("call reset() before step()")
         actions, _ = shard_members(self._check_actions(actions), self.num_envs, batch_axis_of=lambda leaf: 0)
-        self._key, (state, obs, reward, terminated, truncated, info) = _step_jit(self._key, self._state, actions, self._params, config=self.config)
+        state, obs, reward, terminated, truncated, info = self._step(self._state, actions)
         self._state = state
         obs, reward, terminated, truncated, info = jax.device_get((obs, reward, terminated, truncated, info))
         n = self.num_envs

@@ -4,6 +4,7 @@ import dataclasses
 import warnings
 
 import gymnasium
+import jax
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
@@ -13,7 +14,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import lvenv
-from lvenv import presets
+from lvenv import devices, presets
 from lvenv.env import LVHeartVectorEnv
 from lvenv.metrics import FRAME_NAMES
 from lvenv.patients import OBS_NAMES, Patient, builtin
@@ -121,15 +122,21 @@ def test_vector_env_equals_sync_vector_env_of_single_envs():
             np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-12)
 
 
-def test_one_program_is_traced_once_for_resets_and_steps():
+@pytest.mark.parametrize("num_envs, max_episode_steps", [(4, 11), (2 * devices.MIN_MEMBERS_PER_DEVICE, 12)], ids=["one-device", "sharded"])
+def test_one_program_is_traced_once_for_resets_and_steps(num_envs, max_episode_steps):
     """A reset is a step of members that all need one (lvenv.env.vector): an env of a
-    configuration no other test uses traces one program at its first reset, and nothing after."""
-    venv = gymnasium.make_vec(ENV_ID, num_envs=4, max_episode_steps=11, **FAST)
+    configuration no other test uses traces one program at its first reset, and nothing after.
+    Sharded over the devices too, where XLA returns the key and some of the state laid out
+    otherwise than the step takes them, and after a state is restored."""
+    assert devices.layout(num_envs)[0] == (1 if num_envs < 2 * devices.MIN_MEMBERS_PER_DEVICE else min(2, len(jax.devices())))
+    venv = gymnasium.make_vec(ENV_ID, num_envs=num_envs, max_episode_steps=max_episode_steps, **FAST)
     venv.reset(seed=1)
     assert venv.trace_count == 1
     for _ in range(4):
         venv.step(venv.action_space.sample())
     venv.reset(seed=2)
+    venv.step(venv.action_space.sample())
+    venv.unwrapped.set_state(venv.unwrapped.get_state())
     venv.step(venv.action_space.sample())
     assert venv.trace_count == 1, "no re-tracing after the first reset"
     venv.close()
