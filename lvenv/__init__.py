@@ -3,9 +3,17 @@
 Importing lvenv enables JAX float64 (``jax_enable_x64``): the model runs in float64 by default.
 It also asks XLA for one CPU device per core, so batches spread over all cores
 (:mod:`lvenv.devices`; set ``LVENV_CPU_DEVICES=1`` to keep one).
+
+It imports ``jax.extend`` too, before anything compiles. That import registers settings of
+JAX's own (Pallas's) that are part of every jitted function's cache key, so importing it later
+changes the key: every program compiled before it compiles again on its next call. Equinox
+imports it, and the posteriors import Equinox when they first run (:mod:`optim.identify`,
+:mod:`optim.amortised`), so without this a fit's step, compiled before a posterior, compiled
+again after it (``tests/test_imports.py``).
 """
 
 import jax
+import jax.extend  # noqa: F401  (module docstring)
 
 jax.config.update("jax_enable_x64", True)
 

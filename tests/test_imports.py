@@ -3,6 +3,8 @@
 
 import ast
 import pathlib
+import subprocess
+import sys
 
 import pytest
 
@@ -87,3 +89,24 @@ def test_no_module_imports_itself_through_others(package):
     assert len(graph) > 30
     found = [c for c in cycles(graph) if any(m.split(".")[0] == package for m in c)]
     assert not found, f"import cycles: {found}"
+
+
+#: Libraries that lvenv and optim import when a function first needs them (the posteriors' flows,
+#: samplers and diagnostics), not when lvenv is imported.
+LAZY_JAX_LIBRARIES = ("equinox", "flowjax.flows", "paramax", "optax", "blackjax", "emcee", "arviz_stats.base")
+
+
+def test_a_library_imported_later_does_not_make_compiled_programs_compile_again():
+    """Equinox imports ``jax.extend``, which adds settings to every jitted function's cache key
+    (lvenv/__init__.py): imported after a program compiled, it would make that program compile
+    again. In a fresh process, as a user's: a jitted function traces once across the imports."""
+    code = ("import jax, jax.numpy as jnp, lvenv\n"
+            "traced = []\n"
+            "double = jax.jit(lambda x: traced.append(x.shape) or 2 * x)\n"
+            "double(jnp.ones(3))\n"
+            f"import {', '.join(LAZY_JAX_LIBRARIES)}\n"
+            "double(jnp.ones(3))\n"
+            "print(len(traced))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split()[-1] == "1", "the jitted function traced again after the imports"
