@@ -33,7 +33,7 @@ import os
 
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceSharding
 
 __all__ = ["request_cpu_devices", "shard_members", "member_shardings", "padded_size", "layout", "member_mesh", "queue_lanes", "MIN_MEMBERS_PER_DEVICE", "LANES", "CPU_BLOCK",
            "QUEUE_MEMBERS_PER_LANE"]
@@ -133,16 +133,18 @@ def member_mesh() -> Mesh:
 
 
 def member_shardings(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim - 1):
-    """The sharding :func:`shard_members` gives each leaf of ``tree`` (a tree of the same
-    structure): split along its batch axis over :func:`member_mesh`, or on every device whole
-    where ``batch_axis_of`` says None. None when a batch of ``n_members`` stays on one device.
+    """Where each leaf of a batch of ``n_members`` lives (a tree of the structure of ``tree``):
+    split along its batch axis over :func:`member_mesh` (as :func:`shard_members` places it), or
+    on every device whole where ``batch_axis_of`` says None; all on the first device when the
+    batch stays on one.
 
     A jitted program is compiled again for inputs laid out differently, so a caller that feeds
     a program's outputs back into it (:class:`lvenv.env.LVHeartVectorEnv`'s state and key) puts
-    them back in these shardings first: XLA lays out some outputs otherwise (a replicated key, a
-    constant flag)."""
+    them in these shardings before every call: XLA returns some outputs laid out otherwise (a
+    replicated key, a constant flag), and on one device its outputs are committed to the device
+    while the first call's host arrays were not."""
     if _devices_used(n_members) == 1:
-        return None
+        return jax.tree.map(lambda leaf: SingleDeviceSharding(jax.devices()[0]), tree)
     mesh = member_mesh()
 
     def sharding(leaf):
@@ -157,11 +159,11 @@ def member_shardings(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim 
 
 def shard_members(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim - 1):
     """Pad every leaf along its batch axis to :func:`padded_size` and shard it over the devices
-    (small batches, fewer than :data:`MIN_MEMBERS_PER_DEVICE` per device, stay on one;
-    :func:`member_shardings`). Returns ``(tree, padded_size)``."""
+    (:func:`member_shardings`). Small batches, fewer than :data:`MIN_MEMBERS_PER_DEVICE` members
+    per device, stay host arrays, which a jitted call puts on one device. Returns
+    ``(tree, padded_size)``."""
     size = padded_size(n_members)
     tree = jax.tree.map(np.asarray, tree)
-    shardings = member_shardings(tree, n_members, batch_axis_of)
 
     def pad(leaf):
         axis = batch_axis_of(leaf)
@@ -171,6 +173,6 @@ def shard_members(tree, n_members: int, batch_axis_of=lambda leaf: leaf.ndim - 1
         widths[axis] = (0, size - n_members)
         return np.pad(leaf, widths, mode="edge")
 
-    if shardings is None:
+    if _devices_used(n_members) == 1:
         return jax.tree.map(pad, tree), size
-    return jax.tree.map(lambda leaf, sharding: jax.device_put(pad(leaf), sharding), tree, shardings), size
+    return jax.tree.map(lambda leaf, sharding: jax.device_put(pad(leaf), sharding), tree, member_shardings(tree, n_members, batch_axis_of)), size

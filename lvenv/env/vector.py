@@ -189,7 +189,7 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         self.obs_names = OBS_NAMES
         self._host_params = core.env_params(self.patients)
         self._params, self._padded = shard_members(self._host_params, num_envs)
-        # How every step takes its state and key (None on one device): as _cold_state lays them out.
+        # Where every step takes its state and key from (_step).
         self._layout = (member_shardings(self._cold_host_state(needs_reset=False), num_envs),
                         member_shardings(jax.random.PRNGKey(0), num_envs, batch_axis_of=lambda leaf: None))
         self._state: core.EnvState | None = None
@@ -246,18 +246,16 @@ class LVHeartVectorEnv(gymnasium.vector.VectorEnv):
         return core.EnvState(y=np.asarray(self._host_params.y_cold), steps=np.zeros(n, np.int32), needs_reset=np.full(n, needs_reset))
 
     def _cold_state(self, needs_reset: bool) -> core.EnvState:
-        """Every member at its patient's cold start, as device arrays laid out as every step takes them."""
+        """Every member at its patient's cold start, padded and, for a batch spread over the devices, sharded."""
         return jax.tree.map(jax.device_put, shard_members(self._cold_host_state(needs_reset), self.num_envs)[0])
 
     def _step(self, state: core.EnvState, actions: jax.Array):
         """The jitted step from ``state`` (advancing the env's key). The state and key go in laid
-        out as :meth:`_cold_state` lays them out (:func:`~lvenv.devices.member_shardings`; the key
-        on every device): XLA returns the key, and flags it finds constant, laid out otherwise,
-        and a step whose inputs were laid out otherwise would compile again."""
-        key = self._key
+        out the same way at every call (:func:`~lvenv.devices.member_shardings`; the key on every
+        device): the step returns some of them laid out otherwise than the first call's, and a
+        call whose inputs are laid out otherwise would compile the step again."""
         shardings, key_sharding = self._layout
-        if shardings is not None:
-            state, key = jax.device_put(state, shardings), jax.device_put(key, key_sharding)
+        state, key = jax.device_put(state, shardings), jax.device_put(self._key, key_sharding)
         self._key, out = _step_jit(key, state, actions, self._params, config=self.config)
         return out
 

@@ -122,16 +122,23 @@ def test_vector_env_equals_sync_vector_env_of_single_envs():
             np.testing.assert_allclose(x, y, rtol=1e-10, atol=1e-12)
 
 
+#: XLA compilations in this process so far (JAX's compile-time events).
+COMPILES = [0]
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **kw: COMPILES.__setitem__(0, COMPILES[0] + (event == "/jax/core/compile/backend_compile_duration")))
+
+
 @pytest.mark.parametrize("num_envs, max_episode_steps", [(4, 11), (2 * devices.MIN_MEMBERS_PER_DEVICE, 12)], ids=["one-device", "sharded"])
-def test_one_program_is_traced_once_for_resets_and_steps(num_envs, max_episode_steps):
+def test_one_program_is_traced_and_compiled_once_for_resets_and_steps(num_envs, max_episode_steps):
     """A reset is a step of members that all need one (lvenv.env.vector): an env of a
-    configuration no other test uses traces one program at its first reset, and nothing after.
-    Sharded over the devices too, where XLA returns the key and some of the state laid out
-    otherwise than the step takes them, and after a state is restored."""
+    configuration no other test uses traces and compiles one program at its first reset, and
+    nothing after, also where the step returns its state and key laid out otherwise than its
+    first call took them (on one device and sharded over the devices) and after a state is restored."""
     assert devices.layout(num_envs)[0] == (1 if num_envs < 2 * devices.MIN_MEMBERS_PER_DEVICE else min(2, len(jax.devices())))
     venv = gymnasium.make_vec(ENV_ID, num_envs=num_envs, max_episode_steps=max_episode_steps, **FAST)
     venv.reset(seed=1)
     assert venv.trace_count == 1
+    compiled = COMPILES[0]
     for _ in range(4):
         venv.step(venv.action_space.sample())
     venv.reset(seed=2)
@@ -139,6 +146,7 @@ def test_one_program_is_traced_once_for_resets_and_steps(num_envs, max_episode_s
     venv.unwrapped.set_state(venv.unwrapped.get_state())
     venv.step(venv.action_space.sample())
     assert venv.trace_count == 1, "no re-tracing after the first reset"
+    assert COMPILES[0] == compiled, "no compilation after the first reset"
     venv.close()
 
 
