@@ -1,5 +1,6 @@
 """The packages' modules import each other without cycles, function-level imports included
-(issue 32): a cycle means two modules that cannot be understood, tested or loaded apart."""
+(issue 32): a cycle means two modules that cannot be understood, tested or loaded apart. And the
+libraries they import on first use do not make compiled programs compile again."""
 
 import ast
 import pathlib

@@ -128,16 +128,18 @@ jax.monitoring.register_event_duration_secs_listener(
     lambda event, duration, **kw: COMPILES.__setitem__(0, COMPILES[0] + (event == "/jax/core/compile/backend_compile_duration")))
 
 
-@pytest.mark.parametrize("num_envs, max_episode_steps", [(4, 11), (2 * devices.MIN_MEMBERS_PER_DEVICE, 12)], ids=["one-device", "sharded"])
-def test_one_program_is_traced_and_compiled_once_for_resets_and_steps(num_envs, max_episode_steps):
+@pytest.mark.parametrize("sharded, max_episode_steps", [(False, 11), (True, 12)], ids=["one-device", "sharded"])
+def test_one_program_is_traced_and_compiled_once_for_resets_and_steps(sharded, max_episode_steps):
     """A reset is a step of members that all need one (lvenv.env.vector): an env of a
     configuration no other test uses traces and compiles one program at its first reset, and
     nothing after, also where the step returns its state and key laid out otherwise than its
-    first call took them (on one device and sharded over the devices) and after a state is restored."""
-    assert devices.layout(num_envs)[0] == (1 if num_envs < 2 * devices.MIN_MEMBERS_PER_DEVICE else min(2, len(jax.devices())))
+    first call took them (on one device, and sharded over all devices) and after a state is restored."""
+    num_envs = devices.MIN_MEMBERS_PER_DEVICE * len(jax.devices()) if sharded else 4
+    assert devices.layout(num_envs)[0] == (len(jax.devices()) if sharded else 1)
     venv = gymnasium.make_vec(ENV_ID, num_envs=num_envs, max_episode_steps=max_episode_steps, **FAST)
+    compiled = COMPILES[0]
     venv.reset(seed=1)
-    assert venv.trace_count == 1
+    assert venv.trace_count == 1 and COMPILES[0] > compiled, "the first reset compiles the step (and the count sees it)"
     compiled = COMPILES[0]
     for _ in range(4):
         venv.step(venv.action_space.sample())
