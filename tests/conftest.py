@@ -1,8 +1,11 @@
 """Test-wide setup: importing lvenv first enables float64 before any test builds arrays.
 
-The CLI turns on JAX's persistent compilation cache; tests keep it off (``LVENV_JIT_CACHE=off``)
-so that they neither write to the user's cache nor depend on it, except the test of the cache
-itself, which runs its processes on a cache directory of its own.
+The run has a persistent compilation cache of its own (:mod:`lvenv.jitcache`), a new temporary
+folder that the first pytest process makes (``$LVENV_TEST_RUN_JIT_CACHE``) and removes at its
+end. The xdist workers, the commands tests start and a child pytest inherit it, so a program
+that another worker or a command has already compiled is loaded instead of compiled again.
+Tests thus neither write to the user's cache nor depend on an earlier run. Tests of the cache
+itself give their processes a folder of their own.
 
 XLA compiles the run's programs at LLVM optimisation level 1 (``XLA_FLAGS``, inherited by the
 commands, notebooks and Dask workers that tests start), not at its default 3, which users get.
@@ -18,11 +21,27 @@ caller's ``XLA_FLAGS`` names is kept.
 """
 
 import os
+import shutil
+import tempfile
 
-os.environ.setdefault("LVENV_JIT_CACHE", "off")
+#: The environment variable that names the run's compilation cache (module docstring).
+RUN_JIT_CACHE = "LVENV_TEST_RUN_JIT_CACHE"
+_MADE_HERE = RUN_JIT_CACHE not in os.environ
+if _MADE_HERE:
+    os.environ[RUN_JIT_CACHE] = tempfile.mkdtemp(prefix="lvenv-test-jit-")
+os.environ["LVENV_JIT_CACHE"] = os.environ[RUN_JIT_CACHE]
 
 OPTIMISATION_LEVEL = "--xla_backend_optimization_level"
 if OPTIMISATION_LEVEL not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {OPTIMISATION_LEVEL}=1".strip()
 
 import lvenv  # noqa: E402, F401
+from lvenv import jitcache  # noqa: E402
+
+jitcache.enable()
+
+
+def pytest_unconfigure(config):
+    """The process that made the run's cache removes it once every worker has ended."""
+    if _MADE_HERE:
+        shutil.rmtree(os.environ[RUN_JIT_CACHE], ignore_errors=True)
