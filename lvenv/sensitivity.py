@@ -51,7 +51,7 @@ import numpy as np
 from lvenv import lo_model, model
 from lvenv.devices import shard_members
 from lvenv.identification import DEFAULT_ACTION_PARAMS
-from lvenv.metrics import METRIC_NAMES
+from lvenv.metrics import FRAME_NAMES, METRIC_NAMES
 from lvenv.params import Heart, as_batch, field_names
 from lvenv.simulation import beat, simulate
 from lvenv.validation import InputError
@@ -121,16 +121,18 @@ def _cold_volume_rates(heart: Heart, wrt: tuple[str, ...]) -> np.ndarray:
     return np.stack(rates)
 
 
-@functools.partial(jax.jit, static_argnames=("wrt", "metrics", "steps"))
-def _beat_tangents(p: model.ModelParams, y: jax.Array, theta: jax.Array, *, wrt: tuple[str, ...], metrics: tuple[str, ...], steps: int):
+@functools.partial(jax.jit, static_argnames=("wrt", "steps", "volume_trace"))
+def _beat_tangents(p: model.ModelParams, y: jax.Array, theta: jax.Array, *, wrt: tuple[str, ...], steps: int, volume_trace: bool):
     """JVPs of one beat from ``y`` (n, S) along each state axis and each parameter of ``wrt``
-    (values ``theta`` (k, S)), all members at once: (end state (n + k, n, S), metrics (n + k, m, S));
-    n = 9 for the single cell (:func:`lvenv.lo_model.n_states`)."""
+    (values ``theta`` (k, S)), all members at once: (end state (n + k, n, S), metrics (n + k, m, S))
+    with every metric of :data:`~lvenv.metrics.METRIC_NAMES` (the frames NaN without
+    ``volume_trace``), so that one program serves any choice of metrics; n = 9 for the single
+    cell (:func:`lvenv.lo_model.n_states`)."""
 
     def one_beat(y, th):
         pp = p.replace(**{name: th[j] for j, name in enumerate(wrt)})
-        y_end, m, _, _ = beat(pp, y, steps, False)
-        return y_end, jnp.stack([m[name] for name in metrics])
+        y_end, m, _, _ = beat(pp, y, steps, False, volume_trace)
+        return y_end, jnp.stack([m[name] for name in METRIC_NAMES])
 
     k, (n, size) = len(wrt), y.shape
     eye_y = jnp.concatenate([jnp.broadcast_to(jnp.eye(n)[:, :, None], (n, n, size)), jnp.zeros((k, n, size))])
@@ -152,6 +154,8 @@ def jacobian(
 
     The steady state is found by :func:`lvenv.simulate` with ``rtol`` (tighter than the default
     1e-4: the derivative assumes y* = F(y*)); a member that does not reach it has NaN rows.
+    One compiled program serves every choice of ``metrics`` for given ``wrt``, ``steps_per_beat``
+    and batch shape (a second one where the metrics include a volume-trace frame).
     """
     wrt, metrics = _check_names(wrt, metrics)
     batch, single = as_batch(heart)
@@ -162,8 +166,9 @@ def jacobian(
     y_star = np.asarray(steady.final_state, float).T  # (n_y, B)
     (p_dev, y_dev, theta_dev), _ = shard_members((p, y_star, theta), n)
 
-    d_y, d_m = jax.device_get(_beat_tangents(p_dev, y_dev, theta_dev, wrt=wrt, metrics=metrics, steps=steps_per_beat))
-    d_y, d_m = np.asarray(d_y)[..., :n], np.asarray(d_m)[..., :n]
+    volume_trace = not set(metrics).isdisjoint(FRAME_NAMES)
+    d_y, d_m = jax.device_get(_beat_tangents(p_dev, y_dev, theta_dev, wrt=wrt, steps=steps_per_beat, volume_trace=volume_trace))
+    d_y, d_m = np.asarray(d_y)[..., :n], np.asarray(d_m)[:, [METRIC_NAMES.index(name) for name in metrics], :n]
     f_y, f_th = np.moveaxis(d_y[:n_y], 0, 1), np.moveaxis(d_y[n_y:], 0, 1)  # (n_y, n_y, B), (n_y, k, B)
     m_y, m_th = np.moveaxis(d_m[:n_y], 0, 1), np.moveaxis(d_m[n_y:], 0, 1)  # (m, n_y, B), (m, k, B)
 

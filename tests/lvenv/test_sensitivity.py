@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import lvenv
-from lvenv import presets
+from lvenv import presets, sensitivity
 from lvenv.identification import DEFAULT_ACTION_PARAMS
 
 STEPS = 250
@@ -80,6 +80,22 @@ def test_the_closed_loop_volume_constraint_matters():
     fd = _central_differences([heart], ("Cat", "C"), ("EDV",))[0][0]
     assert np.all(_relative_error(np.array([[jac["EDV", "Cat"], jac["EDV", "C"]]]), fd) < 1e-4), (jac["EDV", "Cat"], jac["EDV", "C"], fd)
     assert np.all(np.abs(fd) > 1e-3)
+
+
+def test_the_frames_are_differentiated_when_asked_for_and_other_metrics_compile_nothing_more():
+    """The beat's tangents carry the volume-trace frames only where a frame is among the metrics,
+    and every metric otherwise: a frame's derivative agrees with the central difference, as a
+    summary metric's beside it does, and other metrics in another order reuse the program
+    (their rows are the same numbers)."""
+    heart = presets.normal()
+    metrics = ("V_frame_05", "EF")
+    jac = lvenv.jacobian(heart, wrt=("Sa",), metrics=metrics, steps_per_beat=STEPS, rtol=1e-12, max_beats=3000)
+    fd = _central_differences([heart], ("Sa",), metrics)[0][0]
+    assert np.all(np.abs(fd) > 1e-3) and np.all(_relative_error(jac.values, fd) < 1e-4), (jac.values, fd)
+    programs = sensitivity._beat_tangents._cache_size()
+    other = lvenv.jacobian(heart, wrt=("Sa",), metrics=("ET", "V_frame_05", "EDV", "EF"), steps_per_beat=STEPS, rtol=1e-12, max_beats=3000)
+    assert sensitivity._beat_tangents._cache_size() == programs, "another choice of metrics compiled the tangents again"
+    assert other["V_frame_05", "Sa"] == jac["V_frame_05", "Sa"] and other["EF", "Sa"] == jac["EF", "Sa"]
 
 
 def test_a_member_without_a_usable_steady_state_gets_nan_rows_and_the_others_numbers():
