@@ -38,6 +38,12 @@ with the same maps. These questions separate the candidate mechanisms:
   trained maps (k = 0), with (μ1, delay) refitted (k = 0), and with (μ1, delay, k) refitted
   (:func:`driven_fit`). If the stretch map limited the LO heart, the third would fall well
   below the second.
+* **Would a gain that follows the volume help?** The wall's geometry turns fibre tension into
+  cavity pressure with a gain that grows as the cavity shrinks and the wall thickens (a
+  thick-walled sphere's Laplace law), which the LO law's constant μ2 cannot follow. The same
+  driven cell read through P = μ2 (1 + κ x_FE) Ta + Ppass(V_FE), with (μ2, κ) by least squares
+  (:func:`pressure_law`) and (μ1, delay) refitted: if the constant gain limited the LO heart,
+  its misfit would fall well below the (μ1, delay) fit's and κ would be negative in every beat.
 
 Also per window the wall's interquartile range of λ and dλ/dt against the LO λ's range. Each
 FE beat is written to ``--out``/wall/<heart>_<condition>_h<h>_dt<dt>ms.npz (`lvenv.archive`); a
@@ -161,30 +167,46 @@ def driven_tension(t: jax.Array, lam: jax.Array, delay: jax.Array) -> jax.Array:
     return jnp.concatenate([cell.active_tension(y0, lam[0], p)[None], ta])
 
 
+def pressure_law(ta: np.ndarray, x: np.ndarray, passive: np.ndarray, pressure: np.ndarray, gain: bool) -> tuple[float, np.ndarray]:
+    """The relative misfit ‖P − Ppass − μ2 (1 + κ x) Ta‖ / ‖P‖ of the LO pressure law, with μ2
+    (and with ``gain`` also κ, the gain's slope in x = V/V0 − 1) by least squares, and the
+    coefficients: (μ2,) or (μ2, μ2 κ). ``ta``, ``passive`` and ``pressure`` in kPa."""
+    design = np.column_stack([ta, ta * x] if gain else [ta])
+    coefficients = np.linalg.lstsq(design, pressure - passive, rcond=None)[0]
+    return float(np.linalg.norm(design @ coefficients + passive - pressure) / np.linalg.norm(pressure)), coefficients
+
+
 def driven_fit(traces: dict[str, np.ndarray], v0: float, lo: LOParams) -> dict:
     """The relative pressure misfit of one cell driven by the FE beat's kinematics (module
     docstring): at the trained ``lo`` (``trained``), with (μ1, delay) fitted at k = 0
-    (``volume``) and with (μ1, delay, k) fitted (``volume_and_pressure``); each with its
-    parameters (delay in ms, k in 1/kPa). Nelder–Mead from :data:`DRIVEN_STARTS`."""
+    (``volume``), with (μ1, delay, k) fitted (``volume_and_pressure``) and with (μ1, delay)
+    fitted through the gain μ2 (1 + κ x) (``volume_gain``); each with its parameters (delay in
+    ms, k in 1/kPa, κ per unit x). Nelder–Mead from :data:`DRIVEN_STARTS`."""
     t, v, pressure = (np.asarray(traces[k], float) for k in ("t", "V", "P_lv"))
     x, passive = v / v0 - 1.0, np.asarray(coupling.passive_pressure(v, v0, lo))
     bounds = ranges()
 
-    def misfit(mu1: float, k: float, delay: float) -> float:
+    def law(mu1: float, k: float, delay: float, gain: bool = False) -> tuple[float, np.ndarray]:
         if not (bounds["mu1"][0] <= mu1 <= bounds["mu1"][1] and bounds["delay"][0] <= delay <= bounds["delay"][1]):
-            return np.inf
+            return np.inf, np.full(1 + gain, np.nan)
         ta = np.asarray(driven_tension(t, (1.0 + mu1 * x + k * pressure)[:, None], np.array([delay])))[:, 0]
-        mu2 = ta @ (pressure - passive) / (ta @ ta)
-        return float(np.linalg.norm(mu2 * ta + passive - pressure) / np.linalg.norm(pressure))
+        return pressure_law(ta, x, passive, pressure, gain)
+
+    def misfit(mu1: float, k: float, delay: float, gain: bool = False) -> float:
+        return law(mu1, k, delay, gain)[0]
 
     options = {"xatol": 1e-6, "fatol": 1e-7, "maxfev": 600}
     volume = min((minimize(lambda z: misfit(z[0], 0.0, z[1]), [m, lo.delay], method="Nelder-Mead", options=options)
                   for m in DRIVEN_STARTS["mu1"]), key=lambda r: r.fun)
     both = min((minimize(lambda z: misfit(*z), [volume.x[0], k, volume.x[1]], method="Nelder-Mead", options=options)
                 for k in DRIVEN_STARTS["k"]), key=lambda r: r.fun)
+    gain = min((minimize(lambda z: misfit(z[0], 0.0, z[1], gain=True), [m, volume.x[1]], method="Nelder-Mead", options=options)
+                for m in (volume.x[0], *DRIVEN_STARTS["mu1"])), key=lambda r: r.fun)
+    mu2, mu2_kappa = law(gain.x[0], 0.0, gain.x[1], gain=True)[1]
     return {"trained": misfit(lo.mu1, 0.0, lo.delay),
             "volume": {"misfit": float(volume.fun), "mu1": float(volume.x[0]), "delay_ms": 1000 * float(volume.x[1])},
-            "volume_and_pressure": {"misfit": float(both.fun), "mu1": float(both.x[0]), "k_per_kPa": float(both.x[1]), "delay_ms": 1000 * float(both.x[2])}}
+            "volume_and_pressure": {"misfit": float(both.fun), "mu1": float(both.x[0]), "k_per_kPa": float(both.x[1]), "delay_ms": 1000 * float(both.x[2])},
+            "volume_gain": {"misfit": float(gain.fun), "mu1": float(gain.x[0]), "kappa": float(mu2_kappa / mu2), "delay_ms": 1000 * float(gain.x[1])}}
 
 
 def compare(name: str, condition: int, traces: dict[str, np.ndarray], meta: dict) -> dict:
@@ -231,6 +253,7 @@ def compare(name: str, condition: int, traces: dict[str, np.ndarray], meta: dict
                        "lo_cell": timing(t_lo, ta_lo)},
             "peak_kPa": {"wall_mean": float(ta_mean.max()), "wall_p95": float(ta_q[:, 4].max()), "fe_implied": float(ta_fe.max()), "lo_cell": float(ta_lo.max())},
             "windows": windows, "pressure_fit": fits, "stretch_map": stretch, "stretch_range": lo_range, "driven": driven_fit(traces, v0, lo), "fe_wall_s": meta.get("wall_s"),
+            "volume_range": [float(x.min()), float(x.max())],
             "curves": {"t": t, "wall": ta_q, "fe_implied": ta_fe, "t_lo": t_lo, "lo_cell": ta_lo}}
 
 
@@ -259,7 +282,8 @@ def main() -> None:
 
 def markdown(rows: list[dict], command: str) -> str:
     """The tables of wall.md: tension timing per trace, the fit of the FE pressure to each quantile, the gain per
-    window, the stretch maps of the wall, the LO cells' stretch range and the driven cell."""
+    window, the stretch maps of the wall, the LO cells' stretch range and the driven cell, with a constant gain and one that
+    follows the volume."""
     traces = ("wall_median", "wall_mean", "fe_implied", "lo_cell")
     lines = [f"Made by `{command}` (its FE beats are kept in `wall/` beside this page). Times in ms after the beat's onset.", "",
              "| heart | condition | C (%) | trace | peak | 50 % rise | 50 % fall | 10 % fall |", "|---|---|---|---|---|---|---|---|"]
@@ -307,6 +331,13 @@ def markdown(rows: list[dict], command: str) -> str:
         lines.append(f"| {r['heart']} | {r['condition']} | {100 * d['trained']:.1f} % | {100 * vol['misfit']:.1f} % | {vol['mu1']:.3f} | {vol['delay_ms']:.0f} | "
                      f"{100 * both['misfit']:.1f} % | {both['mu1']:.3f} | {both['delay_ms']:.0f} | {both['k_per_kPa']:+.4f} | "
                      f"{r['stretch_map']['mean']['dlam_dP_per_kPa']:+.4f} |")
+    lines += ["", "The same driven cell read through a gain that follows the volume, P = μ2 (1 + κ (V_FE/V0 − 1)) Ta + Ppass(V_FE) "
+              "((μ2, κ) by least squares, (μ1, delay) fitted), against the constant gain's (μ1, delay) fit above.", "",
+              "| heart | condition | V_FE/V0 − 1 | (μ1, delay) | (μ1, delay) with κ | μ1 | delay (ms) | κ |", "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        vol, gain = r["driven"]["volume"], r["driven"]["volume_gain"]
+        lines.append(f"| {r['heart']} | {r['condition']} | " + "{:+.2f} to {:+.2f}".format(*r["volume_range"]) + f" | {100 * vol['misfit']:.1f} % | "
+                     f"{100 * gain['misfit']:.1f} % | {gain['mu1']:.3f} | {gain['delay_ms']:.0f} | {gain['kappa']:+.3f} |")
     return "\n".join(lines) + "\n"
 
 

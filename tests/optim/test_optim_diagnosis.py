@@ -43,7 +43,8 @@ def test_a_cell_driven_by_an_lo_beats_own_stretch_gives_back_its_tension_and_the
     """scripts/wall_diagnosis.py: the Land cell driven by the trained LO heart's own λ(t), sampled
     every 5 ms as the FE beat is, gives back that heart's Ta(t) (the driven test's only error is
     its integration), and a 10 ms later onset does not; a stretch trace that is a line in V plus
-    a pressure term is read back exactly by the stretch-map plane and not by a line in V."""
+    a pressure term is read back exactly by the stretch-map plane and not by a line in V, and a
+    pressure law whose gain follows the volume by the gain fit and not by a constant gain."""
     from lvenv.geometry import cavity_volume
     from lvenv.simulation import simulate
     from lvenv.trained import builtin
@@ -66,3 +67,9 @@ def test_a_cell_driven_by_an_lo_beats_own_stretch_gives_back_its_tension_and_the
     assert fit["rms_plane"] < 1e-12 and fit["dlam_dP_per_kPa"] == pytest.approx(-0.004, rel=1e-9)
     assert fit["rms_poly"] <= fit["rms_linear"] and fit["rms_linear"] > 1e-3
     assert sum(fit["share"].values()) == pytest.approx(1.0) and fit["swing"]["upstroke"] > 0.0
+
+    passive = np.asarray(coupling.passive_pressure(v, v0, lo))
+    law = passive + lo.mu2 * (1.0 - 0.3 * x) * ta
+    misfit, (mu2, mu2_kappa) = wall_diagnosis.pressure_law(ta, x, passive, law, gain=True)
+    assert misfit < 1e-12 and mu2 == pytest.approx(lo.mu2, rel=1e-9) and mu2_kappa / mu2 == pytest.approx(-0.3, rel=1e-9)
+    assert wall_diagnosis.pressure_law(ta, x, passive, law, gain=False)[0] > 1e-3
