@@ -15,9 +15,10 @@ default run each, back to back, took 1,367 s at level 3, 1,214 s at level 2 and 
 level 1, with the same 546 tests passing. The programs compute the same thing, but LLVM
 vectorises the members' loops differently at each level, so whether a member's last bits
 depend on its batch can differ too. The checks that a batch's layout could break (a member's
-bits in batches of any size and beside other members) therefore also run at level 3
-(``tests/lvenv/test_batching.py::test_layout_checks_hold_as_users_compile``). A level that the
-caller's ``XLA_FLAGS`` names is kept.
+bits in batches of any size and beside other members) therefore run at level 3, in a child
+pytest (``tests/lvenv/test_batching.py::test_layout_checks_hold_as_users_compile``); the
+``users_level`` marker keeps the two that cost most out of the level-1 processes. A level that
+the caller's ``XLA_FLAGS`` names is kept.
 """
 
 import os

@@ -48,6 +48,7 @@ def test_steady_state_is_a_fixed_point_of_the_beat_and_its_state_is_laid_out_as_
     assert float(np.mean(state.v_el)) == pytest.approx(res.final_state[i_v], rel=1e-9)  # series: V = mean V_ξ
 
 
+@pytest.mark.users_level
 def test_a_members_result_does_not_depend_on_its_neighbours():
     """A failing member is flagged and the others are bit-identical to a run without it; so are
     they beside a member whose series Newton needs other iterations (another heart, HF's wall)."""
