@@ -72,7 +72,7 @@ from optim.protocol import Bounds, padded, run
 __all__ = [
     "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "MAP_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
     "difference_unit", "format_difference",
-    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "passive_residual", "fit_passive", "fit_active", "fit_maps",
+    "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "passive_residual", "fit_passive", "fit_active", "fit_maps", "passes_validation",
     "train", "train_on", "check_fidelity",
 ]
 
@@ -273,7 +273,7 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
         try:
             status, t, v, p = one_beat([h for members in built for h in members], steps_per_beat, run_beats)
         except InputError:  # `lvenv.simulate` refuses the whole batch: find the candidates it refuses
-            valid = np.array([all(map(_valid, members)) for members in built])
+            valid = np.array([all(map(passes_validation, members)) for members in built])
             fallback = hearts(start)
             status, t, v, p = one_beat([h for members, ok in zip(built, valid) for h in (members if ok else fallback)], steps_per_beat, run_beats)
         return is_usable(status) & np.repeat(valid, len(built[0])), t, v, p
@@ -295,7 +295,7 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
     return lo, _beat_c(oracles, *beats([lo]))[0]
 
 
-def _valid(heart: Heart) -> bool:
+def passes_validation(heart: Heart) -> bool:
     """Whether ``heart`` passes `lvenv.params.validate`."""
     try:
         validate(heart)

@@ -34,7 +34,7 @@ import fe_oracle
 from lvenv import presets
 from lvenv.params import CellParams, Heart, LOParams
 from lvenv.validation import InputError
-from optim.congruency import ACTIVE_BOUNDS, MAP_NAMES, congruency, fit_maps, one_beat, train
+from optim.congruency import ACTIVE_BOUNDS, MAP_NAMES, congruency, fit_maps, one_beat, passes_validation, train
 from optim.diagnosis import decompose
 
 __all__ = ["UNSEEN", "INTERIOR", "SWEEPS", "scenario", "generalisation", "retune", "map_transfer", "multielement_table"]
@@ -101,11 +101,12 @@ def generalisation(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = 
 
 def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
            names: Sequence[str] = MAP_NAMES, budget: int = 480, steps_per_beat: int = 1000, progress: bool | None = None,
-           **oracle_options: Any) -> list[dict[str, Any]]:
+           bounds: Mapping[str, tuple[float, float]] | None = None, **oracle_options: Any) -> list[dict[str, Any]]:
     """One row per scenario: its name, C with ``heart``'s maps frozen (as :func:`generalisation`),
     and C with the LO parameters ``names`` refitted to that scenario's own oracle beat by
     :func:`optim.congruency.fit_maps` (MADS ``budget`` evaluations from the frozen maps, then
-    least squares), with the refitted values, and where each miss sits (``where_frozen``,
+    least squares, within :data:`~optim.congruency.ACTIVE_BOUNDS` and ``bounds``, which a name
+    outside them, e.g. a passive map's, needs), with the refitted values, and where each miss sits (``where_frozen``,
     ``where_retuned``: the share of C² per window of the beat and the share a pure time shift
     removes, :func:`optim.diagnosis.decompose`) and the oracle's traces (``oracle``). The heart
     keeps its model (``Heart.elements``)."""
@@ -117,7 +118,7 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
         def hearts(lo: LOParams, change=change) -> list[Heart]:
             return [scenario(dataclasses.replace(heart, lo=lo), change)]
 
-        lo, _ = fit_maps(hearts, [oracle.traces], heart.lo, names, budget=budget, steps_per_beat=steps_per_beat, progress=progress)
+        lo, _ = fit_maps(hearts, [oracle.traces], heart.lo, names, budget=budget, steps_per_beat=steps_per_beat, progress=progress, bounds=bounds)
         _, t, v, p = one_beat([*hearts(heart.lo), *hearts(lo)], steps_per_beat)
         frozen, retuned = (decompose(oracle.traces, t[i], v[i], p[i]) for i in (0, 1))
         rows.append({"scenario": name, "change": dict(change), "C_frozen": frozen["C"], "C_retuned": retuned["C"],
@@ -139,22 +140,26 @@ def _position(heart: Heart, change: Mapping[str, float]) -> float:
 
 def map_transfer(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, backend: str = "dolfinx", *,
                  names: Sequence[str] = MAP_NAMES, budget: int = 480, steps_per_beat: int = 1000,
-                 progress: bool | None = None, **oracle_options: Any) -> list[dict[str, Any]]:
+                 progress: bool | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
+                 **oracle_options: Any) -> list[dict[str, Any]]:
     """Do the maps follow the cell smoothly enough to be regressed on it? :func:`retune` at the
     training beat (condition ②), at each scenario's end and at its :data:`INTERIOR` point; then,
     along each scenario's axis (:func:`_position`), the maps at the end extrapolated linearly from
     the training and interior points' retuned maps, and the maps at the interior point
     interpolated from the training and end points' maps. One row per scenario: its
     :func:`retune` row (the end) with ``C_extrapolated``, and ``interior``: the interior point's
-    name, ``C_frozen``, ``C_interpolated`` and ``C_retuned``. Maps out of
-    :data:`~optim.congruency.ACTIVE_BOUNDS` are clipped into them."""
+    name, ``C_frozen``, ``C_interpolated`` and ``C_retuned``. Carried maps out of
+    :data:`~optim.congruency.ACTIVE_BOUNDS` and ``bounds`` (as :func:`retune`) are clipped into
+    them; where the carried passive maps fail `lvenv.params.validate` (a Ppass that is not
+    monotone), that C is NaN."""
     unknown = sorted(set(scenarios) - set(INTERIOR))
     if unknown:
         raise InputError(f"scenarios {unknown} have no point inside their axis; map_transfer takes those of INTERIOR: {sorted(INTERIOR)}")
     interior = {INTERIOR[s][0]: INTERIOR[s][1] for s in scenarios}
     rows = {r["scenario"]: r for r in retune(heart, {"training": {}, **scenarios, **interior}, backend, names=names, budget=budget,
-                                                    steps_per_beat=steps_per_beat, progress=progress, **oracle_options)}
-    lower, upper = (np.array([ACTIVE_BOUNDS[n][i] for n in names]) for i in (0, 1))
+                                                    steps_per_beat=steps_per_beat, progress=progress, bounds=bounds, **oracle_options)}
+    box = {**ACTIVE_BOUNDS, **(bounds or {})}
+    lower, upper = (np.array([box[n][i] for n in names]) for i in (0, 1))
 
     def maps(name: str) -> np.ndarray:
         return np.array([rows[name]["retuned"][n] for n in names])
@@ -169,8 +174,10 @@ def map_transfer(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UN
         inner = INTERIOR[name][0]
         w = _position(heart, change) / _position(heart, rows[inner]["change"])
         beats += [(name, maps("training") + w * (maps(inner) - maps("training"))), (inner, maps("training") + (maps(name) - maps("training")) / w)]
-    _, t, v, p = one_beat([carried(name, values) for name, values in beats], steps_per_beat)
-    c = [_errors(rows[name]["oracle"], t[i], v[i], p[i])["C"] for i, (name, _) in enumerate(beats)]
+    hearts = [carried(name, values) for name, values in beats]
+    valid = [passes_validation(h) for h in hearts]
+    _, t, v, p = one_beat([h if ok else scenario(heart, rows[name]["change"]) for h, ok, (name, _) in zip(hearts, valid, beats)], steps_per_beat)
+    c = [_errors(rows[name]["oracle"], t[i], v[i], p[i])["C"] if valid[i] else np.nan for i, (name, _) in enumerate(beats)]
     out = []
     for j, name in enumerate(scenarios):
         inner = INTERIOR[name][0]

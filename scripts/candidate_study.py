@@ -62,9 +62,10 @@ oracle's own training beats at its defaults and at these. Writes ``--out``/candi
 .png (FE solid, the single cell dashed, each other candidate dotted).
 
 ``retune``: as ``hearts`` (default candidates: single and series3-onsets), then in each unseen
-scenario {μ1, μ2, γ, delay} refitted on that scenario's own FE beat (`optim.studies.retune`,
-MADS budget ``--budget``, then least squares): C with the maps frozen against C with the maps
-retuned. The retuned C is how close the candidate can come to the scenario's beat at all; the
+scenario the maps the candidate trains ({μ1, μ2, γ, delay}; series3-passive also its passive
+map, in the same boxes, :func:`refitted`) refitted on that scenario's own FE beat
+(`optim.studies.retune`, MADS budget ``--budget``, then least squares): C with the maps frozen
+against C with the maps retuned. The retuned C is how close the candidate can come to the scenario's beat at all; the
 gap between the two is what the maps' not carrying over costs. Then whether maps regressed on
 the cell would carry over (`optim.studies.map_transfer`): the maps refitted at the training
 beat and at a point inside each scenario's axis (`optim.studies.INTERIOR`, 8 more FE beats per
@@ -129,6 +130,18 @@ def arrangement(name: str, data: congruency.OracleData, lo: LOParams) -> Arrange
     return congruency.wall_arrangement(kind, cells, (1.0, 1.0) if kind == "series" else (lo.mu1, lo.mu1), data)
 
 
+def refitted(name: str, trained: LOParams) -> tuple[tuple[str, ...], dict[str, tuple[float, float]] | None]:
+    """The LO parameters candidate ``name`` trains, and the boxes of those outside
+    `optim.congruency.ACTIVE_BOUNDS`, set from the single cell's ``trained`` maps (None: none)."""
+    term = EXTENDED.get(name, (name, None))[1]
+    if term == "filling":
+        return (*congruency.MAP_NAMES, "c"), {"c": (1.05 * trained.b**2 / (3.0 * trained.a), 4.0 * trained.c)}
+    if term == "passive":
+        return ((*congruency.MAP_NAMES, *congruency.PASSIVE_NAMES),
+                {n: tuple(sorted((getattr(trained, n) / PASSIVE_FREEDOM, getattr(trained, n) * PASSIVE_FREEDOM))) for n in congruency.PASSIVE_NAMES})
+    return congruency.MAP_NAMES, None
+
+
 def relaxed(data: congruency.OracleData, r: float) -> congruency.OracleData:
     """``data`` with the LO cells' calcium decay time constant τ2 × ``r`` (the FE beats unchanged)."""
     return dataclasses.replace(data, cell=dataclasses.replace(data.cell, tau2=data.cell.tau2 * r))
@@ -159,12 +172,9 @@ def train(data: congruency.OracleData, trained: LOParams, names, budget: int, re
                 print(f"{data.geometry} {name}: w {cells}: C {100 * congruency.overall(fits[-1][1]):.2f} %", file=sys.stderr, flush=True)
             best = min(range(len(fits)), key=lambda i: congruency.overall(fits[i][1]))
             (lo, c), arr = fits[best], arrs[best]
-        elif term == "filling":
-            box = {"c": (1.05 * trained.b**2 / (3.0 * trained.a), 4.0 * trained.c)}
-            lo, c = congruency.fit_active(data, trained, (*congruency.MAP_NAMES, "c"), budget=budget, arrangement=arr, bounds=box)
-        elif term == "passive":
-            box = {n: tuple(sorted((getattr(trained, n) / PASSIVE_FREEDOM, getattr(trained, n) * PASSIVE_FREEDOM))) for n in congruency.PASSIVE_NAMES}
-            lo, c = congruency.fit_active(data, trained, (*congruency.MAP_NAMES, *congruency.PASSIVE_NAMES), budget=budget, arrangement=arr, bounds=box)
+        elif term in ("filling", "passive"):
+            maps, box = refitted(name, trained)
+            lo, c = congruency.fit_active(data, trained, maps, budget=budget, arrangement=arr, bounds=box)
         elif arr is None and refit_single:
             lo, c = congruency.fit_active(data, trained, congruency.MAP_NAMES, budget=budget)
         elif arr is None:
@@ -306,13 +316,14 @@ def retune_mode(args, command: str) -> dict:
     for heart_name, heart, data, fits in trained_hearts(args, {}):
         for name, (lo, c, arr, seconds, factor) in fits.items():
             t0 = time.perf_counter()
-            rows = map_transfer(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=congruency.MAP_NAMES, budget=args.budget, progress=False)
+            maps, box = refitted(name, builtin(heart_name).lo)
+            rows = map_transfer(dataclasses.replace(heart, lo=lo, elements=arr), UNSEEN, names=maps, budget=args.budget, progress=False, bounds=box)
             keep = ("C_frozen", "C_retuned", "C_extrapolated", "retuned", "where_frozen", "where_retuned", "interior")
             results.append({"heart": heart_name, "candidate": name, "training": _summary(data, lo, c, seconds, factor, arr), "retune_seconds": time.perf_counter() - t0,
                             "unseen": {r["scenario"]: {k: r[k] for k in keep} for r in rows}})
     lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats ({oracle_setting()}), then in each "
-             "unseen scenario C with its maps frozen → C with {μ1, μ2, γ, delay} refitted on that scenario's own FE beat "
-             "(`optim.studies.retune`), both %. The second is how close the candidate comes to the beat at all; the gap is what "
+             "unseen scenario C with its maps frozen → C with the maps it trains refitted on that scenario's own FE beat "
+             "(`optim.studies.retune`; {μ1, μ2, γ, delay}, and also the passive map for series3-passive), both %. The second is how close the candidate comes to the beat at all; the gap is what "
              f"the trained maps' not carrying over costs. Goal: unseen C ≤ {100 * GOALS['unseen_C']:g} %.", "",
              "| heart | candidate | " + " | ".join(UNSEEN) + " | worst, frozen → retuned |", "|---|---|" + "---|" * (len(UNSEEN) + 1)]
     for r in results:
@@ -345,7 +356,7 @@ def retune_mode(args, command: str) -> dict:
             inner = u[s]["interior"]
             return (f"{100 * u[s]['C_frozen']:.1f} / {100 * u[s]['C_extrapolated']:.1f} / {100 * u[s]['C_retuned']:.1f}; "
                     f"{inner['scenario']}: {100 * inner['C_frozen']:.1f} / {100 * inner['C_interpolated']:.1f} / {100 * inner['C_retuned']:.1f}")
-        worst = " / ".join(f"{100 * max(x[k] for x in u.values()):.1f}" for k in ("C_frozen", "C_extrapolated", "C_retuned"))
+        worst = " / ".join(f"{100 * np.max([x[k] for x in u.values()]):.1f}" for k in ("C_frozen", "C_extrapolated", "C_retuned"))
         lines.append(f"| {r['heart']} | {r['candidate']} | " + " | ".join(carried(s) for s in UNSEEN) + f" | {worst} |")
     (args.out / "candidates_retune.md").write_text("\n".join(lines) + "\n")
     return {"results": results}

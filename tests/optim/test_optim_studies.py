@@ -6,6 +6,7 @@ at the training beat, so the maps carried from them along the axis must fit too.
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 from lvenv import presets
@@ -21,9 +22,28 @@ def test_retuned_maps_recover_the_scenario_beats_maps_and_carry_along_its_axis(t
     heart = dataclasses.replace(presets.normal(lo="table3"), lo=dataclasses.replace(TRUTH, mu1=0.08, mu2=0.24, delay=0.04))
     (row,) = studies.map_transfer(heart, {"n0_0.9": studies.UNSEEN["n0_0.9"]}, "multielement", names=NAMES, budget=96, progress=False,
                                   arrangement="parallel", n_elements=1, lo=TRUTH, cache_dir=tmp_path)
+    _recovered(row, heart, NAMES)
+    assert row["C_extrapolated"] < 1e-3 and row["interior"]["C_interpolated"] < 1e-3
+
+
+def test_a_passive_map_is_retuned_within_its_box_and_carried_maps_that_fail_validation_get_no_c(tmp_path, monkeypatch):
+    """A name outside ACTIVE_BOUNDS (the passive map's c) is refitted within the box given for
+    it; a carried heart that `lvenv.params.validate` refuses (here: the interior point's) gets C =
+    NaN, and the other carried beat its own C."""
+    names = (*NAMES, "c")
+    heart = dataclasses.replace(presets.normal(lo="table3"), lo=dataclasses.replace(TRUTH, mu1=0.08, mu2=0.24, delay=0.04, c=1.3 * TRUTH.c))
+    monkeypatch.setattr(studies, "passes_validation", lambda h, real=studies.passes_validation: h.cell.n0 != 0.8 and real(h))
+    (row,) = studies.map_transfer(heart, {"n0_0.9": studies.UNSEEN["n0_0.9"]}, "multielement", names=names, budget=160, progress=False,
+                                  bounds={"c": (0.5 * TRUTH.c, 2.0 * TRUTH.c)}, arrangement="parallel", n_elements=1, lo=TRUTH, cache_dir=tmp_path)
+    _recovered(row, heart, names)
+    assert row["C_extrapolated"] < 1e-3 and np.isnan(row["interior"]["C_interpolated"])
+
+
+def _recovered(row: dict, heart, names) -> None:
+    """The retuned maps of ``row`` are the oracle's, at the scenario's end and its interior point."""
     assert row["scenario"] == "n0_0.9" and row["change"] == {"n0": 0.9}
     assert row["C_frozen"] > 0.05 and row["C_retuned"] < 1e-4
-    for name in NAMES:
+    for name in names:
         assert row["retuned"][name] == pytest.approx(getattr(TRUTH, name), rel=1e-3), name
         assert row["frozen"][name] == getattr(heart.lo, name)
     for where in (row["where_frozen"], row["where_retuned"]):
@@ -32,7 +52,6 @@ def test_retuned_maps_recover_the_scenario_beats_maps_and_carry_along_its_axis(t
     inner = row["interior"]
     assert inner["scenario"] == studies.INTERIOR["n0_0.9"][0] == "n0_0.8"
     assert inner["C_frozen"] > 0.02 and inner["C_retuned"] < 1e-4
-    assert row["C_extrapolated"] < 1e-3 and inner["C_interpolated"] < 1e-3
 
 
 def test_a_scenario_without_an_interior_point_is_refused_by_name():
