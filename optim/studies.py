@@ -106,10 +106,10 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
     and C with the LO parameters ``names`` refitted to that scenario's own oracle beat by
     :func:`optim.congruency.fit_maps` (MADS ``budget`` evaluations from the frozen maps, then
     least squares, within :data:`~optim.congruency.ACTIVE_BOUNDS` and ``bounds``, which a name
-    outside them, e.g. a passive map's, needs), with the refitted values, and where each miss sits (``where_frozen``,
-    ``where_retuned``: the share of C² per window of the beat and the share a pure time shift
-    removes, :func:`optim.diagnosis.decompose`) and the oracle's traces (``oracle``). The heart
-    keeps its model (``Heart.elements``)."""
+    outside them, e.g. a passive map's, needs), with the refitted values, and where each miss
+    sits (``where_frozen``, ``where_retuned``: the share of C² per window of the beat and the
+    share a pure time shift removes, :func:`optim.diagnosis.decompose`) and the oracle's traces
+    (``oracle``). The heart keeps its model (``Heart.elements``)."""
     rows = []
     for name, change in scenarios.items():
         target = scenario(heart, change)

@@ -65,12 +65,12 @@ oracle's own training beats at its defaults and at these. Writes ``--out``/candi
 scenario the maps the candidate trains ({μ1, μ2, γ, delay}; series3-passive also its passive
 map, in the same boxes, :func:`refitted`) refitted on that scenario's own FE beat
 (`optim.studies.retune`, MADS budget ``--budget``, then least squares): C with the maps frozen
-against C with the maps retuned. The retuned C is how close the candidate can come to the scenario's beat at all; the
-gap between the two is what the maps' not carrying over costs. Then whether maps regressed on
-the cell would carry over (`optim.studies.map_transfer`): the maps refitted at the training
-beat and at a point inside each scenario's axis (`optim.studies.INTERIOR`, 8 more FE beats per
-heart, shipped), carried linearly to the scenario's end, and back. Writes
-``--out``/candidates_retune.md.
+against C with the maps retuned. The retuned C is how close the candidate can come to the
+scenario's beat at all; the gap between the two is what the maps' not carrying over costs.
+Then whether maps regressed on the cell would carry over (`optim.studies.map_transfer`): the
+maps refitted at the training beat and at a point inside each scenario's axis
+(`optim.studies.INTERIOR`, 8 more FE beats per heart, shipped), carried linearly to the
+scenario's end, and back. Writes ``--out``/candidates_retune.md.
 
 Each candidate costs about a minute per anatomy on one core. The hearts mode's FE runs at the
 oracle's own time step and mesh ship with the package (`scripts/ship_fe_runs.py`); another ``--dt``
@@ -323,7 +323,8 @@ def retune_mode(args, command: str) -> dict:
                             "unseen": {r["scenario"]: {k: r[k] for k in keep} for r in rows}})
     lines = [f"Made by `{command}`: each candidate trained on the heart's own FE training beats ({oracle_setting()}), then in each "
              "unseen scenario C with its maps frozen → C with the maps it trains refitted on that scenario's own FE beat "
-             "(`optim.studies.retune`; {μ1, μ2, γ, delay}, and also the passive map for series3-passive), both %. The second is how close the candidate comes to the beat at all; the gap is what "
+             "(`optim.studies.retune`; {μ1, μ2, γ, delay}, and also the passive map for series3-passive), both %. "
+             "The second is how close the candidate comes to the beat at all; the gap is what "
              f"the trained maps' not carrying over costs. Goal: unseen C ≤ {100 * GOALS['unseen_C']:g} %.", "",
              "| heart | candidate | " + " | ".join(UNSEEN) + " | worst, frozen → retuned |", "|---|---|" + "---|" * (len(UNSEEN) + 1)]
     for r in results:
