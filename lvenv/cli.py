@@ -431,6 +431,9 @@ def _posterior_table(identified) -> Table:
 @click.option("--correct-maps", type=click.IntRange(min=0, max=10), default=0, show_default=True, metavar="K",
               help="K rounds of: the maps refitted on the oracle's beat at the fit, the patient fitted again with them (optim.fit.corrected_fit); "
                    "then the oracle at the last fit. Implies --fidelity; each round costs an oracle run, a refit and a fit (minutes)")
+@click.option("--refit-passive", is_flag=True,
+              help="with --retune-maps or --correct-maps: refit the passive maps {alpha, beta, a, b, c} too, each within the heart's own value "
+                   "÷ and × optim.congruency.PASSIVE_FREEDOM")
 @click.option("--retune-budget", type=click.IntRange(min=16), default=480, show_default=True,
               help="MADS evaluations of each refit of the maps (--retune-maps, --correct-maps), before least squares")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
@@ -439,7 +442,7 @@ def _posterior_table(identified) -> Table:
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
 def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, model, plausibility, identifiability, report_dir, map_draws,
-                fidelity, fidelity_mesh, fidelity_backend, retune_maps, correct_maps, retune_budget, plot_path, convergence_path, posterior,
+                fidelity, fidelity_mesh, fidelity_backend, retune_maps, correct_maps, refit_passive, retune_budget, plot_path, convergence_path, posterior,
                 n_samples, refine, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets.
     A record may give an imaged geometry to unload and take its maps from the anatomy regression
@@ -454,6 +457,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     if retune_maps and (correct_maps or not fidelity):
         raise click.UsageError("--retune-maps refits the maps on the beat of --fidelity; --correct-maps refits them at every round but the last"
                                if correct_maps else "--retune-maps refits the maps on the oracle's beat: it needs --fidelity")
+    if refit_passive and not (retune_maps or correct_maps):
+        raise click.UsageError("--refit-passive refits the passive maps with the others: it needs --retune-maps or --correct-maps")
     if map_draws:
         from optim.map_uncertainty import require_regression_maps
 
@@ -519,8 +524,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
     if (fidelity or correct_maps) and not ok:
         _err.print(f"no check against the oracle: the fit has no usable steady state (status {res.status})", markup=False)
     if (fidelity or correct_maps) and ok:
-        oracle_failed = _check_against_oracle(payload, record, res, heart, method, compile_time, correct_maps, retune_maps, retune_budget,
-                                              fidelity_backend, fidelity_mesh, num_envs, budget, seed, steps_per_beat, scheme, plausibility)
+        oracle_failed = _check_against_oracle(payload, record, res, heart, method, compile_time, correct_maps, retune_maps, refit_passive,
+                                              retune_budget, fidelity_backend, fidelity_mesh, num_envs, budget, seed, steps_per_beat, scheme, plausibility)
     code = EXIT_OK if ok and not oracle_failed else EXIT_FAILED
     if as_json:
         _print_json(payload)
@@ -566,26 +571,28 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 
 
 def _check_against_oracle(payload: dict, record: Patient, res, heart, method: str, compile_time: float, correct_maps: int, retune_maps: bool,
-                          retune_budget: int, backend: str, mesh_size: float, num_envs: int, budget: int, seed: int, steps_per_beat: int,
-                          scheme: str | None, plausibility: bool) -> bool:
+                          refit_passive: bool, retune_budget: int, backend: str, mesh_size: float, num_envs: int, budget: int, seed: int,
+                          steps_per_beat: int, scheme: str | None, plausibility: bool) -> bool:
     """``fit --fidelity`` / ``--correct-maps``: the oracle at the fit ``res`` into ``payload``
-    (``fidelity``; with ``correct_maps`` also ``correction``, a record per round). Returns True if
-    the oracle failed (``payload["fidelity_error"]`` says how); the fit is kept either way."""
+    (``fidelity``; with ``correct_maps`` also ``correction``, a record per round; ``refit_passive``:
+    the refits move the passive maps too). Returns True if the oracle failed
+    (``payload["fidelity_error"]`` says how); the fit is kept either way."""
     from fe_oracle import OracleDidNotConverge
-    from optim.congruency import MAP_NAMES, check_fidelity
+    from optim.congruency import check_fidelity, map_refit
     from optim.fit import FitRow, corrected_fit
 
     oracle = {"mesh_size": mesh_size} if backend == "dolfinx" else {}
     try:
         if not correct_maps:
-            payload["fidelity"] = check_fidelity(heart, backend, progress=_err.is_terminal, retune=MAP_NAMES if retune_maps else (),
-                                                 retune_budget=retune_budget, **oracle).to_dict()
+            names, bounds = map_refit(heart.lo, refit_passive)
+            payload["fidelity"] = check_fidelity(heart, backend, progress=_err.is_terminal, retune=names if retune_maps else (),
+                                                 retune_budget=retune_budget, bounds=bounds, **oracle).to_dict()
             return False
         _err.print(f"correcting the maps: {correct_maps} round(s) of an oracle run, a refit of the maps and a fit, then the oracle "
                    "at the last fit (minutes)", markup=False)
         rounds = corrected_fit(record, (method,), correct_maps, first=FitRow.of(res, compile_time), backend=backend, retune_budget=retune_budget,
                                num_envs=num_envs, budget=budget, seed=seed, steps_per_beat=steps_per_beat, plausibility=plausibility,
-                               scheme=scheme, options={"lm": {"budget": budget}}, progress=_err.is_terminal, **oracle)
+                               scheme=scheme, options={"lm": {"budget": budget}}, progress=_err.is_terminal, passive=refit_passive, **oracle)
     except ImportError as err:
         raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
     except OracleDidNotConverge as err:
@@ -625,19 +632,21 @@ def _fidelity_table(fid: dict, backend: str, mesh_size: float) -> Table:
 
 def _correction_table(rounds: list[dict], backend: str, mesh_size: float) -> Table:
     """``fit --correct-maps``: per round, the maps, the fit's mismatch, C and oracle − LO per
-    target (OUT: outside the tolerance); the parameters of the last round's fit follow it."""
-    from optim.congruency import ACTIVE_NAMES, FIDELITY_TOLERANCE, difference_unit, format_difference
+    target (OUT: outside the tolerance); the parameters of the last round's fit follow it. The
+    passive maps have columns too where the rounds refitted them (``--refit-passive``)."""
+    from optim.congruency import ACTIVE_NAMES, FIDELITY_TOLERANCE, PASSIVE_NAMES, difference_unit, format_difference
 
+    passive = tuple(n for n in PASSIVE_NAMES if n in rounds[0]["maps"])
     last = rounds[-1]["fidelity"]
     table = Table(title=f"maps corrected against the {_oracle_title(last, backend, mesh_size)}: round 0 has the heart's own maps, each next "
                         f"round the maps refitted on the last round's beat; last round C {100 * last['C']:.2f} %, "
                         f"{'within' if last['ok'] else 'OUTSIDE'} tolerance", title_justify="left")
-    for col in ("round", *ACTIVE_NAMES, "delay (ms)", "mismatch (%)", "C (%)", *(f"{METRICS[t].label} ({difference_unit(t)})" for t in FIDELITY_TOLERANCE)):
+    for col in ("round", *ACTIVE_NAMES, "delay (ms)", *passive, "mismatch (%)", "C (%)", *(f"{METRICS[t].label} ({difference_unit(t)})" for t in FIDELITY_TOLERANCE)):
         table.add_column(col, justify="right")
     for step in rounds:
         fid, maps = step["fidelity"], step["maps"]
         table.add_row(str(step["round"]), *(f"{maps[n]:.4g}" for n in ACTIVE_NAMES), f"{1000 * maps['delay']:.1f}",
-                      f"{100 * step['mismatch']:.2f}", f"{100 * fid['C']:.2f}",
+                      *(f"{maps[n]:.4g}" for n in passive), f"{100 * step['mismatch']:.2f}", f"{100 * fid['C']:.2f}",
                       *(format_difference(t, fid["rows"][t][2]) + ("" if fid["within"][t] else " OUT") for t in FIDELITY_TOLERANCE))
     return table
 

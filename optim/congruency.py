@@ -70,14 +70,16 @@ from optim.methods import make_optimizer
 from optim.protocol import Bounds, padded, run
 
 __all__ = [
-    "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "MAP_NAMES", "ACTIVE_BOUNDS", "TARGET_C", "FIDELITY_TOLERANCE",
-    "difference_unit", "format_difference",
+    "TRAINING_PASSIVE", "CONDITIONS", "PASSIVE_NAMES", "ACTIVE_NAMES", "MAP_NAMES", "ACTIVE_BOUNDS", "PASSIVE_FREEDOM", "TARGET_C",
+    "FIDELITY_TOLERANCE", "passive_bounds", "map_refit", "difference_unit", "format_difference",
     "OracleData", "TrainedLO", "Fidelity", "residuals", "training_hearts", "congruency", "one_beat", "lo_beats", "run_congruency", "overall", "congruency_dict", "oracle_data", "passive_residual", "fit_passive", "fit_active", "fit_maps", "passes_validation",
     "train", "train_on", "check_fidelity",
 ]
 
 TRAINING_PASSIVE = Passive(p_max=4.0, n_points=17, p_min=-0.75)
 CONDITIONS = (1, 2, 3)
+#: The passive maps: the parameters of the LO law's Ppass(V) (DESIGN §1), fitted to the oracle's
+#: inflation (:func:`fit_passive`).
 PASSIVE_NAMES = ("alpha", "beta", "a", "b", "c")
 ACTIVE_NAMES = ("mu1", "mu2", "gamma")
 #: The maps with the activation delay: what the delayed active fit, `train_model` and the refits
@@ -85,6 +87,9 @@ ACTIVE_NAMES = ("mu1", "mu2", "gamma")
 MAP_NAMES = (*ACTIVE_NAMES, "delay")
 #: Search box of the active parameters (the delay in s).
 ACTIVE_BOUNDS = {"mu1": (0.02, 0.6), "mu2": (0.02, 1.5), "gamma": (0.2, 30.0), "delay": (0.0, 0.2)}
+#: A refit of the passive maps {α, β, a, b, c} on beats searches each within its value fitted to
+#: the inflation ÷ and × this factor (:func:`passive_bounds`).
+PASSIVE_FREEDOM = 10.0
 TARGET_C = 0.01
 #: MADS for the active fit evaluates each iteration whole: a candidate costs one member of a
 #: batched `lvenv.simulate` call, so fewer calls matter more than fewer candidates (the trained
@@ -221,6 +226,20 @@ def fit_passive(data: OracleData, start: LOParams) -> tuple[LOParams, float]:
     if not fit.success or not np.all(np.isfinite(fit.fun)):
         raise RuntimeError(f"the passive fit did not converge ({fit.message})")
     return lo, float(np.sqrt(np.mean(fit.fun**2)))
+
+
+def passive_bounds(lo: LOParams, factor: float = PASSIVE_FREEDOM) -> dict[str, tuple[float, float]]:
+    """The boxes of a refit of the passive maps {α, β, a, b, c} on beats: each within its value
+    in ``lo`` (fitted to the inflation) ÷ and × ``factor``, in the units of
+    :class:`~lvenv.params.LOParams` (for ``bounds`` of :func:`fit_maps` and :func:`check_fidelity`)."""
+    return {n: tuple(sorted((getattr(lo, n) / factor, getattr(lo, n) * factor))) for n in PASSIVE_NAMES}
+
+
+def map_refit(lo: LOParams, passive: bool = False) -> tuple[tuple[str, ...], dict[str, tuple[float, float]] | None]:
+    """The LO parameters a refit of ``lo``'s maps on beats moves, and the boxes of those outside
+    :data:`ACTIVE_BOUNDS` (None: none): :data:`MAP_NAMES`, and with ``passive`` also
+    :data:`PASSIVE_NAMES` in :func:`passive_bounds` of ``lo``."""
+    return ((*MAP_NAMES, *PASSIVE_NAMES), passive_bounds(lo)) if passive else (MAP_NAMES, None)
 
 
 # ---------------------------------------------------------------------------- active
@@ -498,19 +517,22 @@ def _compare(lo_run, fe: Mapping[str, float], traces: Mapping[str, np.ndarray]) 
 
 
 def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, steps_per_beat: int = 1000,
-                   progress: bool | None = None, retune: Sequence[str] = (), retune_budget: int = 480, **oracle_options: Any) -> Fidelity:
+                   progress: bool | None = None, retune: Sequence[str] = (), retune_budget: int = 480,
+                   bounds: Mapping[str, tuple[float, float]] | None = None, **oracle_options: Any) -> Fidelity:
     """Run the oracle at ``heart`` (closed loop, from the LO steady state, ``beats`` beats) and
     compare its last beat with the LO steady state (module docstring).
 
-    ``retune``: LO parameters (⊆ {μ1, μ2, γ, delay}) to refit on that last beat by :func:`fit_maps`
-    (MADS ``retune_budget`` evaluations from the heart's own values, then least squares), and the
+    ``retune``: LO parameters (⊆ {μ1, μ2, γ, delay} and those ``bounds`` boxes, e.g. the passive
+    maps in :func:`passive_bounds`) to refit on that last beat by :func:`fit_maps` (MADS
+    ``retune_budget`` evaluations from the heart's own values, then least squares), and the
     comparison repeated with them (``Fidelity.retuned``): how close the LO model can come to the
     oracle at this heart at all, against how close its trained maps come."""
     beats = integer("beats", beats, 1)
     retune = tuple(retune)
-    unknown = sorted(set(retune) - set(MAP_NAMES))
+    allowed = [*MAP_NAMES, *(n for n in bounds or {} if n not in MAP_NAMES)]
+    unknown = sorted(set(retune) - set(allowed))
     if unknown:
-        raise InputError(f"retune = {unknown}: only the active maps and the delay can be refitted ({list(MAP_NAMES)})")
+        raise InputError(f"retune = {unknown}: only the active maps, the delay and the parameters `bounds` boxes can be refitted ({allowed})")
     lo_run = simulate(heart, steps_per_beat=steps_per_beat)
     if not is_usable(lo_run.status):
         raise InputError(f"the LO heart has no usable steady state (status {lo_run.status!r}); nothing to check")
@@ -526,7 +548,7 @@ def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, st
     retuned = None
     if retune:
         lo, _ = fit_maps(lambda lo: [dataclasses.replace(heart, lo=lo)], [traces], heart.lo, retune, budget=retune_budget,
-                         steps_per_beat=steps_per_beat, progress=progress, run_beats=None)
+                         steps_per_beat=steps_per_beat, progress=progress, bounds=bounds, run_beats=None)
         rerun = simulate(dataclasses.replace(heart, lo=lo), steps_per_beat=steps_per_beat)
         retuned = {"lo": {n: float(getattr(lo, n)) for n in retune}, "lo_status": str(rerun.status), **_compare(rerun, fe, traces)}
     provenance = {"backend": backend, "oracle_key": result.metadata["key"], "beats": beats, "circulation": dataclasses.asdict(circ),

@@ -42,7 +42,7 @@ from lvenv.params import Heart
 from lvenv.patients import Patient, builtin
 from lvenv.plausibility import Band, inside_bands
 from lvenv.validation import integer
-from optim.congruency import MAP_NAMES, Fidelity, check_fidelity
+from optim.congruency import Fidelity, check_fidelity, map_refit
 from optim.minimize import MinimizeResult, minimize
 
 __all__ = [
@@ -161,21 +161,24 @@ class CorrectionRound:
 def corrected_fit(patient: str | Patient, methods: Sequence[str] = ("cma",), rounds: int = 1, *, first: FitRow | None = None,
                   backend: str = "dolfinx", beats: int = 2, retune_budget: int = 480, num_envs: int = 16, budget: int = 480,
                   seed: int = 0, steps_per_beat: int = 1000, plausibility: bool | Sequence[Band] = True, scheme: str | None = None,
-                  options: Mapping[str, Mapping[str, Any]] | None = None, progress: bool | None = None,
+                  options: Mapping[str, Mapping[str, Any]] | None = None, progress: bool | None = None, passive: bool = False,
                   **oracle_options: Any) -> list[CorrectionRound]:
     """``rounds`` + 1 rounds of: fit ``patient`` with ``methods`` (:func:`fit_patients`; the best
     fit), run the oracle ``backend`` at it for ``beats`` beats (`check_fidelity`), and, but in the
     last round, refit the maps :data:`~optim.congruency.MAP_NAMES` on that beat (MADS
     ``retune_budget`` evaluations, then least squares) for the next round's heart, whose fit
-    starts from this round's fit. (The targets leave directions of the parameters free: fits from
-    one start land at other points along them in each round, where the refitted maps need not
-    hold.) ``first``: the first round's fit, if the patient was fitted already (with its own
+    starts from this round's fit. ``passive``: refit the passive maps
+    :data:`~optim.congruency.PASSIVE_NAMES` too, each within the patient's own value ÷ and ×
+    :data:`~optim.congruency.PASSIVE_FREEDOM` in every round (`optim.congruency.map_refit`). (The
+    targets leave directions of the parameters free: fits from one start land at other points
+    along them in each round, where the refitted maps need not hold.) ``first``: the first round's fit, if the patient was fitted already (with its own
     maps). ``scheme`` and ``options``: the fits' integration scheme and per-method options
     (:func:`fit_patients`); ``progress``: the oracle's and the refits' progress bars. Each round
     costs one oracle run (``beats`` beats; at h = 6 mm about 2 min a beat) and, but the last, one
     refit of the maps (minutes on one core)."""
     patient = _patient(patient)
     rounds = integer("rounds", rounds, 0)
+    names, bounds = map_refit(patient.heart.lo, passive)
     out: list[CorrectionRound] = []
     for r in range(rounds + 1):
         if r == 0 and first is not None:
@@ -185,9 +188,9 @@ def corrected_fit(patient: str | Patient, methods: Sequence[str] = ("cma",), rou
                                 options=options)
             best = min(fits, key=lambda row: row.mismatch)
         heart = patient.heart.replace(**best.parameters)
-        report = check_fidelity(heart, backend, beats=beats, steps_per_beat=steps_per_beat, retune=MAP_NAMES if r < rounds else (),
-                                retune_budget=retune_budget, progress=progress, **oracle_options)
-        out.append(CorrectionRound({n: float(getattr(heart.lo, n)) for n in MAP_NAMES}, best, report))
+        report = check_fidelity(heart, backend, beats=beats, steps_per_beat=steps_per_beat, retune=names if r < rounds else (),
+                                retune_budget=retune_budget, bounds=bounds, progress=progress, **oracle_options)
+        out.append(CorrectionRound({n: float(getattr(heart.lo, n)) for n in names}, best, report))
         if r < rounds:
             lo = dataclasses.replace(heart.lo, **report.retuned["lo"])
             patient = dataclasses.replace(patient, heart=dataclasses.replace(heart, lo=lo))

@@ -21,8 +21,8 @@ fidelity           ``out/diagnosis/diagnosis.md``;                        ``pyth
                    ``candidates_hearts_h4.5mm.md``,                       ``… hearts --mesh-size 4.5 --candidates single series3-onsets --no-unseen``,
                    ``candidates_retune.md``                               ``python scripts/candidate_study.py retune``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
-                   ``out/fit/fidelity_<patient>_<model>.md``;             ``python scripts/fit_patients.py --fidelity``
-                                                                          (or ``--correct-maps K``);
+                   ``out/fit/fidelity_<patient>_<model>[_passive].md``;   ``python scripts/fit_patients.py --fidelity``
+                                                                          (or ``--correct-maps K [--refit-passive]``);
                    ``out/identify/posterior_patients.json`` and           ``python scripts/posterior_patients.py``;
                    ``posterior_pairs.png``;
                    ``out/cohort/*.csv`` with its ``.json``                ``lvenv cohort REPORTS --out out/cohort/…``
@@ -140,15 +140,17 @@ def _fits(root: Path, report_dir: Path) -> list[str]:
 
 
 def _fit_fidelity(root: Path) -> list[str]:
-    """Each table ``fit_patients.py`` wrote of a patient's fidelity checks (one per patient and
-    LO model, each headed by its command)."""
+    """Each table ``fit_patients.py`` wrote of a patient's fidelity checks (one per patient, LO
+    model and whether the refits moved the passive maps too, each headed by its command)."""
     files = sorted((root / "fit").glob("fidelity_*.md"))
     if not files:
         return _missing("python scripts/fit_patients.py --fidelity")
     lines = []
     for path in files:
-        patient, model = path.stem.removeprefix("fidelity_").rsplit("_", 1)
-        lines += [f"**{patient}, {model} heart**, results of {_stamp(path)} (`{path}`).", "", path.read_text().strip(), ""]
+        stem = path.stem.removeprefix("fidelity_")
+        patient, model = stem.removesuffix("_passive").rsplit("_", 1)
+        refits = ", passive maps refitted too" if stem.endswith("_passive") else ""
+        lines += [f"**{patient}, {model} heart{refits}**, results of {_stamp(path)} (`{path}`).", "", path.read_text().strip(), ""]
     return lines
 
 

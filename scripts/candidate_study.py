@@ -35,9 +35,10 @@ The candidates (`CANDIDATES`):
   (about 4 min per heart). A fitted spread and order bound what volume shares set from the
   wall's stretch distribution could do;
 * **series3-passive**: series3-onsets with the whole passive map {α, β, a, b, c} refitted on the
-  beats beside {μ1, μ2, γ, delay}, each within a factor `PASSIVE_FREEDOM` of its value fitted to
-  the inflation: nine trained parameters, the most the LO maps can give on the beats, at the
-  cost of the inflation curve (its RMS volume residual: the hearts table's "inflation", and the JSON).
+  beats beside {μ1, μ2, γ, delay}, each within a factor `optim.congruency.PASSIVE_FREEDOM` of its
+  value fitted to the inflation: nine trained parameters, the most the LO maps can give on the
+  beats, at the cost of the inflation curve (its RMS volume residual: the hearts table's
+  "inflation", and the JSON).
 
 The anatomy sets the onsets (`optim.congruency.wall_arrangement`, at the quantiles of
 `lvenv.presets.onset_quantiles`; `fe_oracle.activation.activation_quantiles` on its oracle mesh:
@@ -109,8 +110,6 @@ ARRANGED = {"series-onsets": ("series", 5), "parallel-onsets": ("parallel", 5), 
 EXTENDED = {"single-relax": ("single", "relax"), "series3-relax": ("series3-onsets", "relax"),
             "single-filling": ("single", "filling"), "series3-filling": ("series3-onsets", "filling"),
             "series3-weights": ("series3-onsets", "weights"), "series3-passive": ("series3-onsets", "passive")}
-#: series3-passive: each passive parameter is searched within its inflation value ÷ and × this factor.
-PASSIVE_FREEDOM = 10.0
 #: The relaxation-term candidates (dataset mode only: the LO cell's τ2 is not an LO parameter).
 RELAXED = tuple(name for name, (_, term) in EXTENDED.items() if term == "relax")
 #: The decay factors r a relaxation-term candidate is trained over (the LO cell's τ2 is the wall's × r).
@@ -136,10 +135,7 @@ def refitted(name: str, trained: LOParams) -> tuple[tuple[str, ...], dict[str, t
     term = EXTENDED.get(name, (name, None))[1]
     if term == "filling":
         return (*congruency.MAP_NAMES, "c"), {"c": (1.05 * trained.b**2 / (3.0 * trained.a), 4.0 * trained.c)}
-    if term == "passive":
-        return ((*congruency.MAP_NAMES, *congruency.PASSIVE_NAMES),
-                {n: tuple(sorted((getattr(trained, n) / PASSIVE_FREEDOM, getattr(trained, n) * PASSIVE_FREEDOM))) for n in congruency.PASSIVE_NAMES})
-    return congruency.MAP_NAMES, None
+    return congruency.map_refit(trained, term == "passive")
 
 
 def relaxed(data: congruency.OracleData, r: float) -> congruency.OracleData:

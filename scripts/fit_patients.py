@@ -10,6 +10,7 @@ the paper's question, where the four methods' point ratios disagree.
     python scripts/fit_patients.py --fidelity [--fidelity-mesh 6]  # also check each patient's best fit against the 3-D oracle
     python scripts/fit_patients.py --fidelity --retune-maps        # and refit the maps on that FE beat: the model's own floor there
     python scripts/fit_patients.py --correct-maps 1 --methods cma  # fit again with the maps refitted on the FE beat, check again
+    python scripts/fit_patients.py --correct-maps 1 --refit-passive # the passive maps refitted too
     python scripts/fit_patients.py --posterior-samples 0            # point fits only
     python scripts/fit_patients.py --importance 0                   # the flow's own draws, not reweighted
     python scripts/fit_patients.py --model series3 --fidelity      # the 3-cell series LO heart (lvenv.presets.LO_MODELS)
@@ -30,8 +31,12 @@ at the patient's best fit and fitting the patient again with them (``--methods``
 check of the last fit: each round costs one FE run (``--fidelity-beats`` beats, about 2 min
 each at h = 6 mm), one refit of the maps and one fit.
 
+``--refit-passive`` (with ``--retune-maps`` or ``--correct-maps``): the refits move the passive
+maps {α, β, a, b, c} too, each within its trained value ÷ and × 10
+(`optim.congruency.map_refit`); a refit of the nine maps takes about a minute on one core.
+
 With ``--fidelity`` or ``--correct-maps``, each patient's checks are also written as a table,
-with the command that made them, to ``<out>/fidelity_<patient>_<model>.md``, which `lvenv
+with the command that made them, to ``<out>/fidelity_<patient>_<model>[_passive].md``, which `lvenv
 report` shows on the inverse-problem page.
 """
 
@@ -55,7 +60,7 @@ from lvenv.patients import builtin
 from lvenv.presets import LO_MODELS
 from lvenv.metrics import METRICS, display, header
 from lvenv.plausibility import report, resolve
-from optim.congruency import FIDELITY_TOLERANCE, MAP_NAMES, Fidelity, check_fidelity, difference_unit, format_difference
+from optim.congruency import FIDELITY_TOLERANCE, Fidelity, check_fidelity, difference_unit, format_difference, map_refit
 from optim.fit import FitRow, corrected_fit, fit_patients, synthetic_recovery
 
 
@@ -169,6 +174,9 @@ def main() -> None:
                     help="with --fidelity: refit {mu1, mu2, gamma, delay} on each FE beat and compare again (the model's own floor there)")
     ap.add_argument("--correct-maps", type=int, default=0, metavar="K",
                     help="K rounds of: maps refitted on the FE beat at the best fit, the patient fitted again with them; then the FE check")
+    ap.add_argument("--refit-passive", action="store_true",
+                    help="with --retune-maps or --correct-maps: refit the passive maps {alpha, beta, a, b, c} too, each within its trained "
+                         "value ÷ and × optim.congruency.PASSIVE_FREEDOM")
     ap.add_argument("--no-plausibility", dest="plausibility", action="store_false",
                     help="drop the filling-pressure bands (mean atrial pressure, EDP) from the objective")
     ap.add_argument("--posterior-samples", type=int, default=4000, metavar="N",
@@ -179,6 +187,8 @@ def main() -> None:
     a = ap.parse_args()
     if a.retune_maps and not a.fidelity:
         ap.error("--retune-maps refits the maps on the fidelity check's FE beat: it needs --fidelity")
+    if a.refit_passive and not (a.retune_maps or a.correct_maps):
+        ap.error("--refit-passive refits the passive maps with the others: it needs --retune-maps or --correct-maps")
     if a.correct_maps < 0:
         ap.error(f"--correct-maps {a.correct_maps}: the number of correction rounds must be >= 0")
     if a.synthetic:
@@ -213,27 +223,30 @@ def main() -> None:
     if a.correct_maps:
         checks = print_corrected(rows, a)
     elif a.fidelity:
-        checks = print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model, a.retune_maps)
+        checks = print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model, a.retune_maps, a.refit_passive)
     else:
         return
     command = shlex.join(["python", "scripts/fit_patients.py", *sys.argv[1:]])
     for patient, patient_checks in checks.items():
-        path = Path(a.out, f"fidelity_{patient}_{a.model}.md")
+        path = Path(a.out, f"fidelity_{patient}_{a.model}{'_passive' if a.refit_passive else ''}.md")
         path.write_text(fidelity_markdown(patient_checks, command, a.fidelity_mesh, a.fidelity_beats))
         print(f"{patient}: the checks' table is in {path}")
 
 
-def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False) -> dict[str, list[Check]]:
+def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False,
+                   refit_passive: bool = False) -> dict[str, list[Check]]:
     """The 3-D oracle at each patient's best fit (of the LO heart ``model``): LO, FE and their
-    difference per target; with ``retune_maps`` also FE − LO with the maps refitted on that FE beat.
+    difference per target; with ``retune_maps`` also FE − LO with the maps refitted on that FE beat
+    (with ``refit_passive``, the passive maps too: `optim.congruency.map_refit`).
     Returns each patient's check."""
     checks = {}
     for patient in dict.fromkeys(r.patient for r in rows):
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
         heart = builtin(patient, model).heart.replace(**best.parameters)
-        rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats, retune=MAP_NAMES if retune_maps else ())
+        names, bounds = map_refit(heart.lo, refit_passive)
+        rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats, retune=names if retune_maps else (), bounds=bounds)
         print_check(f"fidelity of {patient} ({best.method} fit) against the 3-D oracle (h = {mesh_size:g} mm, {beats} beats)",
-                    {n: getattr(heart.lo, n) for n in MAP_NAMES}, rep)
+                    {n: getattr(heart.lo, n) for n in names}, rep)
         checks[patient] = [Check("trained", best, rep)]
     return checks
 
@@ -246,7 +259,7 @@ def print_corrected(rows, a) -> dict[str, list[Check]]:
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
         rounds = corrected_fit(builtin(patient, a.model), a.methods, a.correct_maps, first=best, beats=a.fidelity_beats,
                                num_envs=a.num_envs, budget=a.budget or 480, seed=a.seed, steps_per_beat=a.steps_per_beat,
-                               plausibility=a.plausibility, mesh_size=a.fidelity_mesh)
+                               plausibility=a.plausibility, passive=a.refit_passive, mesh_size=a.fidelity_mesh)
         checks[patient] = []
         for r, step in enumerate(rounds):
             source = "trained" if r == 0 else f"refitted on round {r - 1}'s FE beat"
@@ -289,8 +302,8 @@ def print_check(title: str, maps: dict, rep, parameters: dict | None = None) -> 
         print("  fit: " + ", ".join(f"{n} {_param(n, v)}{' ms' if n == 'tau2' else ''}" for n, v in parameters.items()))
     again = rep.retuned
     if again is not None:
-        print(f"  maps refitted on this FE beat ({', '.join(f'{n} {again['lo'][n]:.4g}' for n in MAP_NAMES)}; "
-              f"before: {', '.join(f'{n} {maps[n]:.4g}' for n in MAP_NAMES)}): C {100 * again['C']:.2f} %")
+        print(f"  maps refitted on this FE beat ({', '.join(f'{n} {v:.4g}' for n, v in again['lo'].items())}; "
+              f"before: {', '.join(f'{n} {maps[n]:.4g}' for n in again['lo'])}): C {100 * again['C']:.2f} %")
     for name, (lo, fe, diff) in rep.rows.items():
         line = f"  {header(name):18s} LO {_show(name, lo):>7s}  FE {_show(name, fe):>7s}  FE − LO {format_difference(name, diff, unit=True):>12s}  {'ok' if rep.within[name] else 'OUT'}"
         if again is not None:

@@ -100,8 +100,28 @@ def test_fidelity_refits_the_maps_on_the_oracle_beat_and_compares_again(tmp_path
     assert sum(abs(again["rows"][n][2]) for n in again["rows"]) < sum(abs(report.rows[n][2]) for n in report.rows)
     assert report.to_dict()["retuned"]["lo"] == again["lo"]
     assert cg.check_fidelity(heart, "multielement", beats=3, **oracle).retuned is None
-    with pytest.raises(InputError, match=r"retune = \['Sa'\]: only the active maps and the delay"):
+    with pytest.raises(InputError, match=r"retune = \['Sa'\]: only the active maps, the delay and the parameters `bounds` boxes"):
         cg.check_fidelity(heart, "multielement", retune=("Sa",), **oracle)
+
+
+def test_fidelity_refits_a_passive_map_only_inside_the_box_it_is_given(tmp_path):
+    """``retune`` with ``bounds`` (`map_refit` with ``passive``: every passive map within its own
+    value ÷ and × `PASSIVE_FREEDOM`): against an oracle whose passive c is 1.5 times the heart's,
+    c refitted on the oracle's beat comes back at least two thirds of the way to the oracle's; a
+    box that ends below the oracle's c holds it at the box's edge; without a box c is refused by
+    name."""
+    heart = presets.normal().replace(lo=TRUTH)
+    oracle = lo_data(tmp_path, dataclasses.replace(TRUTH, c=1.5 * TRUTH.c))
+    names, boxes = cg.map_refit(TRUTH, passive=True)
+    assert names == (*cg.MAP_NAMES, *cg.PASSIVE_NAMES) and cg.map_refit(TRUTH) == (cg.MAP_NAMES, None)
+    assert boxes["c"] == pytest.approx((TRUTH.c / cg.PASSIVE_FREEDOM, TRUTH.c * cg.PASSIVE_FREEDOM))
+    report = cg.check_fidelity(heart, "multielement", beats=3, retune=("c",), retune_budget=48, bounds=boxes, **oracle)
+    assert abs(report.retuned["lo"]["c"] - 1.5 * TRUTH.c) < 0.5 * TRUTH.c / 3 and report.retuned["C"] < report.C / 3
+    held = cg.check_fidelity(heart, "multielement", beats=3, retune=("c",), retune_budget=48, bounds={"c": (0.5 * TRUTH.c, 1.2 * TRUTH.c)},
+                             **oracle)
+    assert held.retuned["lo"]["c"] == pytest.approx(1.2 * TRUTH.c, rel=1e-6)
+    with pytest.raises(InputError, match=r"retune = \['c'\]"):
+        cg.check_fidelity(heart, "multielement", retune=("c",), **oracle)
 
 def test_fit_active_searches_a_further_lo_parameter_inside_the_box_it_is_given():
     """``bounds`` adds a parameter to the search: against beats the single cell generated with a

@@ -116,6 +116,36 @@ def test_make_env_takes_a_patient_record_path_and_picks_the_scheme_of_its_model(
 
 
 
+def test_corrected_fit_with_passive_refits_the_passive_maps_inside_their_boxes_and_the_cli_shows_them(tmp_path):
+    """``passive``: every round carries the nine maps, and round 1's passive maps, refitted on
+    round 0's beat, stay within the patient's own ÷ and × `PASSIVE_FREEDOM` (the oracle is the
+    patient's own LO heart; a passive map found again is `check_fidelity`'s test); `lvenv fit
+    --correct-maps`'s table gets a column per passive map."""
+    from rich.console import Console
+
+    from lvenv import cli
+    from optim.congruency import PASSIVE_FREEDOM, PASSIVE_NAMES
+
+    truth = dataclasses.replace(presets.N_LO, mu1=0.0945, mu2=0.2, gamma=2.5, delay=0.03)
+    normal = builtin("normal")
+    patient = dataclasses.replace(normal, heart=normal.heart.replace(lo=truth))
+    rounds = corrected_fit(patient, ("cma",), 1, backend="multielement", beats=5, retune_budget=32, num_envs=8, budget=64,
+                           steps_per_beat=500, passive=True, arrangement="parallel", n_elements=1, lo=truth, cache_dir=tmp_path)
+    assert all(tuple(r.maps) == (*MAP_NAMES, *PASSIVE_NAMES) for r in rounds)
+    assert rounds[1].maps == rounds[0].fidelity.retuned["lo"]
+    for name in PASSIVE_NAMES:
+        low, high = sorted((getattr(truth, name) / PASSIVE_FREEDOM, getattr(truth, name) * PASSIVE_FREEDOM))
+        assert low <= rounds[1].maps[name] <= high, name
+    payload = [{"round": r, "maps": step.maps, "mismatch": step.fit.mismatch, "fidelity": step.fidelity.to_dict()} for r, step in enumerate(rounds)]
+    console = Console(record=True, width=400)
+    console.print(cli._correction_table(payload, "multielement", 6.0))
+    lines = console.export_text().splitlines()
+    head = next(line for line in lines if line.startswith("┃"))
+    assert [c.strip() for c in head.split("┃")[1:-1]][:10] == ["round", "mu1", "mu2", "gamma", "delay (ms)", *PASSIVE_NAMES]
+    row = next(line for line in lines if line.startswith("│") and line.split("│")[1].strip() == "1")
+    assert row.split("│")[10].strip() == f"{rounds[1].maps['c']:.4g}"
+
+
 def test_corrected_fit_refits_the_maps_on_the_oracle_beat_and_the_next_fit_matches_the_oracle(tmp_path, capsys):
     """`corrected_fit` against an oracle that is the LO heart with other maps (the multi-element
     backend with one element): the maps refitted on the oracle's beat at the first fit come back

@@ -38,6 +38,8 @@ def _results(root):
     os.utime(root / "fit" / "fits.txt", (0, 86400 * 365))  # 1971-01-01
     (root / "fit" / "fidelity_heart_failure_series3.md").write_text("Command: `python scripts/fit_patients.py --correct-maps 3`.\n\n"
                                                                      "| maps | C |\n|---|---|\n| round 3 | 3.04 % |\n")
+    (root / "fit" / "fidelity_heart_failure_series3_passive.md").write_text(
+        "Command: `python scripts/fit_patients.py --correct-maps 3 --refit-passive`.\n\n| maps | C |\n|---|---|\n| round 3 | 2.62 % |\n")
 
 
 def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_path):
@@ -61,6 +63,7 @@ def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_
     assert "## Built-in patients" in inverse and "results of 1971-01-01 00:00 UTC" in inverse and "normal   mads    0.42 %" in inverse
     assert "## Fidelity of the fits against the FE oracle\n\n**heart_failure, series3 heart**, results of " in inverse
     assert "Command: `python scripts/fit_patients.py --correct-maps 3`." in inverse and "| round 3 | 3.04 % |" in inverse
+    assert "\n\n**heart_failure, series3 heart, passive maps refitted too**, results of " in inverse and "| round 3 | 2.62 % |" in inverse
     assert "Not run yet. Command: `lvenv cohort REPORTS.csv --out out/cohort/fits.csv`" in inverse
     assert "`python scripts/posterior_patients.py` (sampler ensemble)" in inverse and "| | tau2 (s) | Sa |" in inverse
     assert "| heart_failure | 0.2 (0.18–0.22) | 1 (0.5–1.5) |" in inverse and "P(Sa_HF < Sa_N) = 0.988" in inverse
