@@ -123,6 +123,7 @@ def test_fidelity_refits_a_passive_map_only_inside_the_box_it_is_given(tmp_path)
     with pytest.raises(InputError, match=r"retune = \['c'\]"):
         cg.check_fidelity(heart, "multielement", retune=("c",), **oracle)
 
+
 def test_fit_active_searches_a_further_lo_parameter_inside_the_box_it_is_given():
     """``bounds`` adds a parameter to the search: against beats the single cell generated with a
     20 % stiffer passive map, fitting {μ2, c} from the trained c recovers that c; a box that

@@ -115,7 +115,6 @@ def test_make_env_takes_a_patient_record_path_and_picks_the_scheme_of_its_model(
         venv.close()
 
 
-
 def test_corrected_fit_with_passive_refits_the_passive_maps_inside_their_boxes_and_the_cli_shows_them(tmp_path):
     """``passive``: every round carries the nine maps, and round 1's passive maps, refitted on
     round 0's beat, stay within the patient's own ÷ and × `PASSIVE_FREEDOM` (the oracle is the
