@@ -9,16 +9,19 @@ itself give their processes a folder of their own.
 
 XLA compiles the run's programs at LLVM optimisation level 1 (``XLA_FLAGS``, inherited by the
 commands, notebooks and Dask workers that tests start), not at its default 3, which users get.
-Compiling takes most of the run's time (62 % of the time in tests at level 3), and level 1
-compiles about 1.6 times as fast, while the programs run about as fast: on one machine, one
-default run each, back to back, took 1,367 s at level 3, 1,214 s at level 2 and 967 s at
-level 1, with the same 546 tests passing. The programs compute the same thing, but LLVM
-vectorises the members' loops differently at each level, so whether a member's last bits
-depend on its batch can differ too. The checks that a batch's layout could break (a member's
-bits in batches of any size and beside other members) therefore run at level 3, in a child
-pytest (``tests/lvenv/test_batching.py::test_layout_checks_hold_as_users_compile``); the
-``users_level`` marker keeps the two that cost most out of the level-1 processes. A level that
-the caller's ``XLA_FLAGS`` names is kept.
+Compiling takes most of the run's time (62 % of the time in tests at level 3), and level 1 compiles
+about 1.6 times as fast, while the programs run about as fast: on one machine, one default run
+each, back to back, took 1,367 s at level 3, 1,214 s at level 2 and 967 s at level 1, with the same
+546 tests passing. Level 0 halves the compiling again (532 against 1,067 s in the pytest processes,
+552 tests), but its programs can run 6 times as slowly (the jacobian's beat tangents), so the whole
+run gained only 43 s (1,157 against 1,200 s, one run each), less than two level-1 runs differ
+(1,200 and 1,299 s): the run stays at level 1. The programs compute the same thing, but LLVM
+vectorises the members' loops differently at each level, so whether a member's last bits depend on
+its batch can differ too. The checks that a batch's layout could break (a member's bits in batches
+of any size and beside other members) therefore run at level 3, in a child pytest
+(``tests/lvenv/test_batching.py::test_layout_checks_hold_as_users_compile``); the ``users_level``
+marker keeps the two that cost most out of the level-1 processes. A level that the caller's
+``XLA_FLAGS`` names is kept.
 """
 
 import os
