@@ -434,6 +434,8 @@ def _posterior_table(identified) -> Table:
 @click.option("--refit-passive", is_flag=True,
               help="with --retune-maps or --correct-maps: refit the passive maps {alpha, beta, a, b, c} too, each within the heart's own value "
                    "÷ and × optim.congruency.PASSIVE_FREEDOM")
+@click.option("--aortic-weight", type=click.FloatRange(min=0.0), default=0.0, show_default=True, metavar="W",
+              help="with --retune-maps or --correct-maps: the refits minimise C^2 + W A^2, A the aortic pressure's misfit on the oracle's beat")
 @click.option("--retune-budget", type=click.IntRange(min=16), default=480, show_default=True,
               help="MADS evaluations of each refit of the maps (--retune-maps, --correct-maps), before least squares")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, callback=_plot_suffix, help="write the fitted beat against the targets (.png or .pdf)")
@@ -442,8 +444,8 @@ def _posterior_table(identified) -> Table:
 @_posterior_options
 @click.option("--json", "as_json", is_flag=True, help="print JSON (internal units) instead of tables")
 def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme, model, plausibility, identifiability, report_dir, map_draws,
-                fidelity, fidelity_mesh, fidelity_backend, retune_maps, correct_maps, refit_passive, retune_budget, plot_path, convergence_path, posterior,
-                n_samples, refine, as_json) -> int:
+                fidelity, fidelity_mesh, fidelity_backend, retune_maps, correct_maps, refit_passive, aortic_weight, retune_budget, plot_path,
+                convergence_path, posterior, n_samples, refine, as_json) -> int:
     """Fit (tau2, Sa, R2, R3, C, Cat) of PATIENT (a built-in name or a patient JSON file) to its targets.
     A record may give an imaged geometry to unload and take its maps from the anatomy regression
     (lvenv.patients); --map-draws then carries the maps' uncertainty into the fit."""
@@ -459,6 +461,8 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
                                if correct_maps else "--retune-maps refits the maps on the oracle's beat: it needs --fidelity")
     if refit_passive and not (retune_maps or correct_maps):
         raise click.UsageError("--refit-passive refits the passive maps with the others: it needs --retune-maps or --correct-maps")
+    if aortic_weight and not (retune_maps or correct_maps):
+        raise click.UsageError("--aortic-weight weighs the aortic pressure into the refits of the maps: it needs --retune-maps or --correct-maps")
     if map_draws:
         from optim.map_uncertainty import require_regression_maps
 
@@ -525,7 +529,7 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
         _err.print(f"no check against the oracle: the fit has no usable steady state (status {res.status})", markup=False)
     if (fidelity or correct_maps) and ok:
         oracle_failed = _check_against_oracle(payload, record, res, heart, method, compile_time, correct_maps, retune_maps, refit_passive,
-                                              retune_budget, fidelity_backend, fidelity_mesh, num_envs, budget, seed, steps_per_beat, scheme, plausibility)
+                                              aortic_weight, retune_budget, fidelity_backend, fidelity_mesh, num_envs, budget, seed, steps_per_beat, scheme, plausibility)
     code = EXIT_OK if ok and not oracle_failed else EXIT_FAILED
     if as_json:
         _print_json(payload)
@@ -571,12 +575,13 @@ def fit_command(patient, method, budget, num_envs, seed, steps_per_beat, scheme,
 
 
 def _check_against_oracle(payload: dict, record: Patient, res, heart, method: str, compile_time: float, correct_maps: int, retune_maps: bool,
-                          refit_passive: bool, retune_budget: int, backend: str, mesh_size: float, num_envs: int, budget: int, seed: int,
-                          steps_per_beat: int, scheme: str | None, plausibility: bool) -> bool:
+                          refit_passive: bool, aortic_weight: float, retune_budget: int, backend: str, mesh_size: float, num_envs: int,
+                          budget: int, seed: int, steps_per_beat: int, scheme: str | None, plausibility: bool) -> bool:
     """``fit --fidelity`` / ``--correct-maps``: the oracle at the fit ``res`` into ``payload``
     (``fidelity``; with ``correct_maps`` also ``correction``, a record per round; ``refit_passive``:
-    the refits move the passive maps too). Returns True if the oracle failed
-    (``payload["fidelity_error"]`` says how); the fit is kept either way."""
+    the refits move the passive maps too; ``aortic_weight``: they weigh the aortic pressure in).
+    Returns True if the oracle failed (``payload["fidelity_error"]`` says how); the fit is kept
+    either way."""
     from fe_oracle import OracleDidNotConverge
     from optim.congruency import check_fidelity, map_refit
     from optim.fit import FitRow, corrected_fit
@@ -586,13 +591,14 @@ def _check_against_oracle(payload: dict, record: Patient, res, heart, method: st
         if not correct_maps:
             names, bounds = map_refit(heart.lo, refit_passive)
             payload["fidelity"] = check_fidelity(heart, backend, progress=_err.is_terminal, retune=names if retune_maps else (),
-                                                 retune_budget=retune_budget, bounds=bounds, **oracle).to_dict()
+                                                 retune_budget=retune_budget, bounds=bounds, aortic_weight=aortic_weight, **oracle).to_dict()
             return False
         _err.print(f"correcting the maps: {correct_maps} round(s) of an oracle run, a refit of the maps and a fit, then the oracle "
                    "at the last fit (minutes)", markup=False)
         rounds = corrected_fit(record, (method,), correct_maps, first=FitRow.of(res, compile_time), backend=backend, retune_budget=retune_budget,
                                num_envs=num_envs, budget=budget, seed=seed, steps_per_beat=steps_per_beat, plausibility=plausibility,
-                               scheme=scheme, options={"lm": {"budget": budget}}, progress=_err.is_terminal, passive=refit_passive, **oracle)
+                               scheme=scheme, options={"lm": {"budget": budget}}, progress=_err.is_terminal, passive=refit_passive,
+                               aortic_weight=aortic_weight, **oracle)
     except ImportError as err:
         raise click.UsageError(f"--fidelity needs the FE oracle (pip install 'lvenv[fe]'): {err}") from None
     except OracleDidNotConverge as err:

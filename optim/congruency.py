@@ -64,7 +64,7 @@ from lvenv.params import Arrangement, CellParams, Heart, LOParams, validate
 from lvenv.simulation import simulate
 from lvenv.status import is_usable
 from lvenv.trained import TrainedLO
-from lvenv.validation import InputError, choice, integer
+from lvenv.validation import InputError, choice, integer, real
 from optim.mads import MadsOptions
 from optim.methods import make_optimizer
 from optim.protocol import Bounds, padded, run
@@ -132,14 +132,18 @@ def residuals(oracle: Mapping[str, np.ndarray], t: np.ndarray, v: np.ndarray, p:
     With trapezoidal weights ω_j on the oracle's samples t_j: r = [√ω_j (V_LO − V_FE)_j / ‖V_FE‖,
     √ω_j (P_LO − P_FE)_j / ‖P_FE‖], ‖f‖² = Σ_j ω_j f_j²; shape (members, 2 × samples).
     """
-    t_fe, v_fe, p_fe = (np.asarray(oracle[k], float) for k in ("t", "V", "P_lv"))
+    return np.concatenate([trace_residuals(oracle, "V", t, v), trace_residuals(oracle, "P_lv", t, p)], axis=1)
+
+
+def trace_residuals(oracle: Mapping[str, np.ndarray], name: str, t: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """√ω_j (X_LO − X_FE)_j / ‖X_FE‖ of the oracle's trace ``name`` (X), per LO member: the LO
+    traces ``values`` (members, samples) on the time axis ``t`` (s), interpolated linearly onto
+    the oracle's samples t_j, with trapezoidal weights ω_j there; shape (members, samples)."""
+    t_fe, x_fe = (np.asarray(oracle[k], float) for k in ("t", name))
     dt = np.diff(t_fe)
     omega = 0.5 * (np.concatenate([dt, [0.0]]) + np.concatenate([[0.0], dt]))
-    root = np.sqrt(omega)
-    v_lo = np.stack([np.interp(t_fe, t, row) for row in np.atleast_2d(v)])
-    p_lo = np.stack([np.interp(t_fe, t, row) for row in np.atleast_2d(p)])
-    return np.concatenate([root * (v_lo - v_fe) / np.sqrt(np.sum(omega * v_fe**2)),
-                           root * (p_lo - p_fe) / np.sqrt(np.sum(omega * p_fe**2))], axis=1)
+    x_lo = np.stack([np.interp(t_fe, t, row) for row in np.atleast_2d(values)])
+    return np.sqrt(omega) * (x_lo - x_fe) / np.sqrt(np.sum(omega * x_fe**2))
 
 
 def congruency(oracle: Mapping[str, np.ndarray], t: np.ndarray, v: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -158,12 +162,13 @@ def training_hearts(geometry: Geometry, cell: CellParams, los: Sequence[LOParams
     return [Heart(geometry=geometry, lo=lo, cell=cell, circulation=circ, elements=elements) for lo in los for circ in base]
 
 
-def one_beat(hearts: Sequence[Heart], steps_per_beat: int = 1000, beats: int | None = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def one_beat(hearts: Sequence[Heart], steps_per_beat: int = 1000,
+             beats: int | None = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The last of ``beats`` beats of each of ``hearts`` from the training-protocol state (None:
     its steady beat), one batched simulation (`lvenv.simulate`, of the model the hearts carry):
-    (status names (members,), t (s), V (ml), P_lv (kPa), each (members, samples))."""
+    (status names (members,), t (s), V (ml), P_lv (kPa), P_ao (kPa), each (members, samples))."""
     sim = simulate(hearts, beats=beats, steps_per_beat=steps_per_beat)
-    return np.asarray(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv
+    return np.asarray(sim.status), sim.traces.t, sim.traces.V, sim.traces.P_lv, sim.traces.P_ao
 
 
 def lo_beats(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 1000,
@@ -171,17 +176,29 @@ def lo_beats(data: OracleData, los: Sequence[LOParams], steps_per_beat: int = 10
     """One LO beat per (candidate, condition) of :func:`training_hearts` (:func:`one_beat`; a
     multi-element heart with ``arrangement``): (usable (members,), t (s), V (ml), P_lv (kPa),
     each (members, samples))."""
-    status, t, v, p = one_beat(training_hearts(data.geometry, data.cell, los, arrangement), steps_per_beat)
+    status, t, v, p, _ = one_beat(training_hearts(data.geometry, data.cell, los, arrangement), steps_per_beat)
     return is_usable(status), t, v, p
 
 
 def _beat_c(oracles: Sequence[Mapping[str, np.ndarray]], usable: np.ndarray, t: np.ndarray, v: np.ndarray, p: np.ndarray) -> np.ndarray:
     """C per (candidate, beat) of candidate-major LO beats against ``oracles``; NaN where unusable."""
+    return _per_beat(oracles, usable, lambda oracle, rows: congruency(oracle, t[rows[0]], v[rows], p[rows]))
+
+
+def _beat_aortic(oracles: Sequence[Mapping[str, np.ndarray]], usable: np.ndarray, t: np.ndarray, p_ao: np.ndarray) -> np.ndarray:
+    """The aortic pressure's misfit √(∫(P_ao,LO − P_ao,FE)² / ∫P_ao,FE²) per (candidate, beat) of
+    candidate-major LO beats against ``oracles`` (:func:`trace_residuals`); NaN where unusable."""
+    return _per_beat(oracles, usable, lambda oracle, rows: np.sum(trace_residuals(oracle, "P_ao", t[rows[0]], p_ao[rows]) ** 2, axis=1))
+
+
+def _per_beat(oracles: Sequence[Mapping[str, np.ndarray]], usable: np.ndarray, squared: Callable) -> np.ndarray:
+    """√``squared(oracle, rows)`` per (candidate, beat), ``rows`` the candidate-major members of
+    that oracle's beat; NaN where unusable."""
     n = len(oracles)
     out = np.full((len(usable) // n, n), np.nan)
     for j, oracle in enumerate(oracles):
         rows = np.arange(j, len(usable), n)
-        out[:, j] = np.where(usable[rows], np.sqrt(congruency(oracle, t[rows[0]], v[rows], p[rows])), np.nan)
+        out[:, j] = np.where(usable[rows], np.sqrt(squared(oracle, rows)), np.nan)
     return out
 
 
@@ -258,7 +275,7 @@ def fit_active(data: OracleData, start: LOParams, names: Sequence[str] = ACTIVE_
 def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Mapping[str, np.ndarray]], start: LOParams,
              names: Sequence[str] = ACTIVE_NAMES, *, budget: int = 960, batch: int = 16, seed: int = 0, steps_per_beat: int = 1000,
              progress: bool | None = None, bounds: Mapping[str, tuple[float, float]] | None = None,
-             run_beats: int | None = 1) -> tuple[LOParams, np.ndarray]:
+             run_beats: int | None = 1, aortic_weight: float = 0.0) -> tuple[LOParams, np.ndarray]:
     """Minimise C² = mean over beats of C_i² over the LO parameters ``names`` by OrthoMADS with
     kriging search, from ``start`` (clipped into the boxes), then polish by bounded least squares
     on the residuals of C²; returns the best LO parameters and C per beat. ``hearts(lo)``: the LO
@@ -267,6 +284,12 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
     ``run_beats`` beats, None: the steady beat, as the oracle's beats were run). ``bounds``: as in
     :func:`fit_active`. :func:`fit_active` fits the training beats; `optim.studies.retune` one
     unseen scenario's beat; :func:`check_fidelity` the beat of a heart's closed loop.
+
+    ``aortic_weight`` w ≥ 0: minimise C² + w A² instead, A² the mean over beats of the aortic
+    pressure's ∫(P_ao,LO − P_ao,FE)² / ∫P_ao,FE² (:func:`trace_residuals`; each oracle's traces need
+    ``P_ao``, kPa, as a closed-loop beat has). C² weighs only the LV's volume and pressure, which
+    can leave the ejection's shape, and so the aortic pulse pressure, off (docs/congruency.md).
+    The returned C per beat is C either way.
 
     A candidate whose hearts fail `lvenv.params.validate` (a box of the passive maps can hold
     maps with a non-monotone Ppass) counts as a failed beat: when `lvenv.simulate` refuses a
@@ -278,6 +301,10 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
     uniformly drawn point of the box with the budget left, and the best point over all runs wins.
     """
     names = tuple(names)
+    aortic_weight = real("aortic_weight", aortic_weight, 0.0)
+    if aortic_weight and not all("P_ao" in o and np.all(np.isfinite(o["P_ao"])) for o in oracles):
+        raise InputError(f"aortic_weight = {aortic_weight:g} weighs the aortic pressure in: every oracle beat needs a finite P_ao trace "
+                         "(a closed-loop beat), and one has none")
     box = {**ACTIVE_BOUNDS, **(bounds or {})}
     lower = np.array([box[n][0] for n in names])
     upper = np.array([box[n][1] for n in names])
@@ -286,20 +313,24 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
     def candidates(x: np.ndarray) -> list[LOParams]:
         return [dataclasses.replace(start, **dict(zip(names, map(float, row)))) for row in x]
 
-    def beats(los: Sequence[LOParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def beats(los: Sequence[LOParams]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         built = [hearts(lo) for lo in los]
         valid = np.ones(len(los), bool)
         try:
-            status, t, v, p = one_beat([h for members in built for h in members], steps_per_beat, run_beats)
+            status, t, v, p, p_ao = one_beat([h for members in built for h in members], steps_per_beat, run_beats)
         except InputError:  # `lvenv.simulate` refuses the whole batch: find the candidates it refuses
             valid = np.array([all(map(passes_validation, members)) for members in built])
             fallback = hearts(start)
-            status, t, v, p = one_beat([h for members, ok in zip(built, valid) for h in (members if ok else fallback)], steps_per_beat, run_beats)
-        return is_usable(status) & np.repeat(valid, len(built[0])), t, v, p
+            status, t, v, p, p_ao = one_beat([h for members, ok in zip(built, valid) for h in (members if ok else fallback)], steps_per_beat,
+                                             run_beats)
+        return is_usable(status) & np.repeat(valid, len(built[0])), t, v, p, p_ao
 
     def objective(x: np.ndarray) -> np.ndarray:
-        c2 = overall(_beat_c(oracles, *beats(candidates(x)))) ** 2
-        return np.log10(c2 + 1e-14)  # the kriging search models log C² far better than C²
+        usable, t, v, p, p_ao = beats(candidates(x))
+        f = overall(_beat_c(oracles, usable, t, v, p)) ** 2
+        if aortic_weight:
+            f = f + aortic_weight * np.mean(_beat_aortic(oracles, usable, t, p_ao) ** 2, axis=-1)
+        return np.log10(f + 1e-14)  # the kriging search models log C² far better than C²
 
     rng = np.random.default_rng(seed)
     best_x, best_f, left = x0, np.inf, budget
@@ -310,8 +341,8 @@ def fit_maps(hearts: Callable[[LOParams], Sequence[Heart]], oracles: Sequence[Ma
             best_x, best_f = res.x_best, res.merit_best
         left -= res.evaluations
         x0 = lower + rng.random(len(names)) * (upper - lower)
-    lo = _polish(beats, oracles, candidates(best_x[None])[0], names, lower, upper)
-    return lo, _beat_c(oracles, *beats([lo]))[0]
+    lo = _polish(beats, oracles, candidates(best_x[None])[0], names, lower, upper, aortic_weight)
+    return lo, _beat_c(oracles, *beats([lo])[:4])[0]
 
 
 def passes_validation(heart: Heart) -> bool:
@@ -324,18 +355,21 @@ def passes_validation(heart: Heart) -> bool:
 
 
 def _polish(beats: Callable, oracles: Sequence[Mapping[str, np.ndarray]], lo: LOParams, names: tuple[str, ...], lower: np.ndarray,
-            upper: np.ndarray) -> LOParams:
-    """Refine MADS's best point by bounded least squares on the residuals of C² (trust-region
-    reflective, `scipy.optimize.least_squares`); kept only if C² falls."""
+            upper: np.ndarray, aortic_weight: float = 0.0) -> LOParams:
+    """Refine MADS's best point by bounded least squares on the residuals of C² (+ w A² with
+    ``aortic_weight`` w, :func:`fit_maps`; trust-region reflective, `scipy.optimize.least_squares`);
+    kept only if that objective falls."""
 
     def with_values(x) -> LOParams:
         return dataclasses.replace(lo, **dict(zip(names, map(float, x))))
 
     def fun(x) -> np.ndarray:
-        usable, t, v, p = beats([with_values(x)])
+        usable, t, v, p, p_ao = beats([with_values(x)])
         if not np.all(usable):
-            return np.full(sum(2 * len(o["t"]) for o in oracles), 1e3)
+            return np.full(sum((3 if aortic_weight else 2) * len(o["t"]) for o in oracles), 1e3)
         parts = [residuals(o, t[j], v[j], p[j])[0] for j, o in enumerate(oracles)]
+        if aortic_weight:
+            parts += [np.sqrt(aortic_weight) * trace_residuals(o, "P_ao", t[j], p_ao[j])[0] for j, o in enumerate(oracles)]
         return np.concatenate(parts) / np.sqrt(len(oracles))
 
     x0 = np.clip([getattr(lo, n) for n in names], lower, upper)
@@ -485,7 +519,7 @@ class Fidelity:
     ``within[name]``: inside the tolerance; ``C``: congruency of the last beat's V and P traces.
     ``retuned`` (None unless :func:`check_fidelity` was asked to retune): the same comparison
     with the LO parameters ``retune`` refitted on the oracle's last beat: ``lo`` (name → value),
-    ``rows``, ``within``, ``C`` and ``lo_status``."""
+    ``rows``, ``within``, ``C``, ``lo_status`` and the refit's ``aortic_weight``."""
 
     rows: dict[str, tuple[float, float, float]]
     within: dict[str, bool]
@@ -518,7 +552,8 @@ def _compare(lo_run, fe: Mapping[str, float], traces: Mapping[str, np.ndarray]) 
 
 def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, steps_per_beat: int = 1000,
                    progress: bool | None = None, retune: Sequence[str] = (), retune_budget: int = 480,
-                   bounds: Mapping[str, tuple[float, float]] | None = None, **oracle_options: Any) -> Fidelity:
+                   bounds: Mapping[str, tuple[float, float]] | None = None, aortic_weight: float = 0.0,
+                   **oracle_options: Any) -> Fidelity:
     """Run the oracle at ``heart`` (closed loop, from the LO steady state, ``beats`` beats) and
     compare its last beat with the LO steady state (module docstring).
 
@@ -526,9 +561,13 @@ def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, st
     maps in :func:`passive_bounds`) to refit on that last beat by :func:`fit_maps` (MADS
     ``retune_budget`` evaluations from the heart's own values, then least squares), and the
     comparison repeated with them (``Fidelity.retuned``): how close the LO model can come to the
-    oracle at this heart at all, against how close its trained maps come."""
+    oracle at this heart at all, against how close its trained maps come. ``aortic_weight``: the
+    refit weighs the aortic pressure trace in (:func:`fit_maps`; needs ``retune``)."""
     beats = integer("beats", beats, 1)
     retune = tuple(retune)
+    aortic_weight = real("aortic_weight", aortic_weight, 0.0)
+    if aortic_weight and not retune:
+        raise InputError(f"aortic_weight = {aortic_weight:g} weighs the aortic pressure into the refit of the maps: name the maps in retune")
     allowed = [*MAP_NAMES, *(n for n in bounds or {} if n not in MAP_NAMES)]
     unknown = sorted(set(retune) - set(allowed))
     if unknown:
@@ -543,14 +582,15 @@ def check_fidelity(heart: Heart, backend: str = "dolfinx", *, beats: int = 2, st
     fe = fe_oracle.beat_metrics(result)
     period = float(result.metadata["period_s"])
     last = result.traces["t"] >= result.traces["t"][-1] - period - 1e-9
-    traces = {k: result.traces[k][last] for k in ("V", "P_lv")} | {"t": result.traces["t"][last] - result.traces["t"][last][0]}
+    traces = {k: result.traces[k][last] for k in ("V", "P_lv", "P_ao")} | {"t": result.traces["t"][last] - result.traces["t"][last][0]}
     frozen = _compare(lo_run, fe, traces)
     retuned = None
     if retune:
         lo, _ = fit_maps(lambda lo: [dataclasses.replace(heart, lo=lo)], [traces], heart.lo, retune, budget=retune_budget,
-                         steps_per_beat=steps_per_beat, progress=progress, bounds=bounds, run_beats=None)
+                         steps_per_beat=steps_per_beat, progress=progress, bounds=bounds, run_beats=None, aortic_weight=aortic_weight)
         rerun = simulate(dataclasses.replace(heart, lo=lo), steps_per_beat=steps_per_beat)
-        retuned = {"lo": {n: float(getattr(lo, n)) for n in retune}, "lo_status": str(rerun.status), **_compare(rerun, fe, traces)}
+        retuned = {"lo": {n: float(getattr(lo, n)) for n in retune}, "lo_status": str(rerun.status), "aortic_weight": aortic_weight,
+                   **_compare(rerun, fe, traces)}
     provenance = {"backend": backend, "oracle_key": result.metadata["key"], "beats": beats, "circulation": dataclasses.asdict(circ),
                   "oracle_options": {k: v for k, v in oracle_options.items() if isinstance(v, (int, float, str))}}
     return Fidelity(frozen["rows"], frozen["within"], frozen["C"], bool(fe["valid"]), str(lo_run.status), provenance, retuned)

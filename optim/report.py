@@ -21,8 +21,9 @@ fidelity           ``out/diagnosis/diagnosis.md``;                        ``pyth
                    ``candidates_hearts_h4.5mm.md``,                       ``… hearts --mesh-size 4.5 --candidates single series3-onsets --no-unseen``,
                    ``candidates_retune.md``                               ``python scripts/candidate_study.py retune``
 inverse problem    ``out/fit/fits.txt``, ``out/fit/pv_*.png``;            ``make run``;
-                   ``out/fit/fidelity_<patient>_<model>[_passive].md``;   ``python scripts/fit_patients.py --fidelity``
-                                                                          (or ``--correct-maps K [--refit-passive]``);
+                   ``out/fit/fidelity_<patient>_<model>[_passive]``       ``python scripts/fit_patients.py --fidelity``
+                   ``[_aorticW].md`` (:func:`fidelity_file`);             (or ``--correct-maps K [--refit-passive]
+                                                                          [--aortic-weight W]``);
                    ``out/identify/posterior_patients.json`` and           ``python scripts/posterior_patients.py``;
                    ``posterior_pairs.png``;
                    ``out/cohort/*.csv`` with its ``.json``                ``lvenv cohort REPORTS --out out/cohort/…``
@@ -41,6 +42,7 @@ import csv
 import datetime
 import json
 import os
+import re
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -139,18 +141,33 @@ def _fits(root: Path, report_dir: Path) -> list[str]:
     return lines + [""]
 
 
+def fidelity_file(patient: str, model: str, passive: bool = False, aortic_weight: float = 0.0) -> str:
+    """The name of the table ``scripts/fit_patients.py`` writes of a patient's fidelity checks with
+    the LO heart ``model``: ``fidelity_<patient>_<model>[_passive][_aortic<W>].md``, marked where the
+    refits moved the passive maps too or weighed the aortic pressure in (:func:`_fit_fidelity`)."""
+    return f"fidelity_{patient}_{model}{'_passive' if passive else ''}{f'_aortic{aortic_weight:g}' if aortic_weight else ''}.md"
+
+
+_FIDELITY_STEM = re.compile(rf"fidelity_(?P<patient>.+)_(?P<model>{'|'.join(map(re.escape, presets.LO_MODELS))})"
+                            r"(?P<passive>_passive)?(?:_aortic(?P<weight>[^_]+))?")
+
+
 def _fit_fidelity(root: Path) -> list[str]:
     """Each table ``fit_patients.py`` wrote of a patient's fidelity checks (one per patient, LO
-    model and whether the refits moved the passive maps too, each headed by its command)."""
+    model and how the refits moved the maps, :func:`fidelity_file`; each headed by its command)."""
     files = sorted((root / "fit").glob("fidelity_*.md"))
     if not files:
         return _missing("python scripts/fit_patients.py --fidelity")
     lines = []
     for path in files:
-        stem = path.stem.removeprefix("fidelity_")
-        patient, model = stem.removesuffix("_passive").rsplit("_", 1)
-        refits = ", passive maps refitted too" if stem.endswith("_passive") else ""
-        lines += [f"**{patient}, {model} heart{refits}**, results of {_stamp(path)} (`{path}`).", "", path.read_text().strip(), ""]
+        name = _FIDELITY_STEM.fullmatch(path.stem)
+        if name is None:  # not a name the script gives
+            title = path.stem
+        else:
+            refits = (", passive maps refitted too" if name["passive"] else "") + (
+                f", aortic pressure weighed in (weight {name['weight']})" if name["weight"] else "")
+            title = f"{name['patient']}, {name['model']} heart{refits}"
+        lines += [f"**{title}**, results of {_stamp(path)} (`{path}`).", "", path.read_text().strip(), ""]
     return lines
 
 

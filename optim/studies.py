@@ -89,7 +89,7 @@ def generalisation(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = 
     one batch, of the model ``heart`` carries (``Heart.elements``: the single cell or a
     multi-element heart; ``oracle_options`` keep ``arrangement`` for the multielement oracle)."""
     hearts = {name: scenario(heart, change) for name, change in scenarios.items()}
-    status, t, v, p = one_beat(list(hearts.values()), steps_per_beat)
+    status, t, v, p, _ = one_beat(list(hearts.values()), steps_per_beat)
     traces = [{"t": t[i], "V": v[i], "P_lv": p[i]} for i in range(len(hearts))]
     rows = []
     for i, (name, h) in enumerate(hearts.items()):
@@ -119,7 +119,7 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
             return [scenario(dataclasses.replace(heart, lo=lo), change)]
 
         lo, _ = fit_maps(hearts, [oracle.traces], heart.lo, names, budget=budget, steps_per_beat=steps_per_beat, progress=progress, bounds=bounds)
-        _, t, v, p = one_beat([*hearts(heart.lo), *hearts(lo)], steps_per_beat)
+        _, t, v, p, _ = one_beat([*hearts(heart.lo), *hearts(lo)], steps_per_beat)
         frozen, retuned = (decompose(oracle.traces, t[i], v[i], p[i]) for i in (0, 1))
         rows.append({"scenario": name, "change": dict(change), "C_frozen": frozen["C"], "C_retuned": retuned["C"],
                      "where_frozen": {k: frozen[k] for k in ("share", "timing_share")}, "where_retuned": {k: retuned[k] for k in ("share", "timing_share")},
@@ -176,7 +176,7 @@ def map_transfer(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UN
         beats += [(name, maps("training") + w * (maps(inner) - maps("training"))), (inner, maps("training") + (maps(name) - maps("training")) / w)]
     hearts = [carried(name, values) for name, values in beats]
     valid = [passes_validation(h) for h in hearts]
-    _, t, v, p = one_beat([h if ok else scenario(heart, rows[name]["change"]) for h, ok, (name, _) in zip(hearts, valid, beats)], steps_per_beat)
+    _, t, v, p, _ = one_beat([h if ok else scenario(heart, rows[name]["change"]) for h, ok, (name, _) in zip(hearts, valid, beats)], steps_per_beat)
     c = [_errors(rows[name]["oracle"], t[i], v[i], p[i])["C"] if valid[i] else np.nan for i, (name, _) in enumerate(beats)]
     out = []
     for j, name in enumerate(scenarios):

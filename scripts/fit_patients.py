@@ -11,6 +11,7 @@ the paper's question, where the four methods' point ratios disagree.
     python scripts/fit_patients.py --fidelity --retune-maps        # and refit the maps on that FE beat: the model's own floor there
     python scripts/fit_patients.py --correct-maps 1 --methods cma  # fit again with the maps refitted on the FE beat, check again
     python scripts/fit_patients.py --correct-maps 1 --refit-passive # the passive maps refitted too
+    python scripts/fit_patients.py --correct-maps 1 --aortic-weight 1 # the refits weigh the aortic pressure in
     python scripts/fit_patients.py --posterior-samples 0            # point fits only
     python scripts/fit_patients.py --importance 0                   # the flow's own draws, not reweighted
     python scripts/fit_patients.py --model series3 --fidelity      # the 3-cell series LO heart (lvenv.presets.LO_MODELS)
@@ -35,9 +36,13 @@ each at h = 6 mm), one refit of the maps and one fit.
 maps {α, β, a, b, c} too, each within its trained value ÷ and × 10
 (`optim.congruency.map_refit`); a refit of the nine maps takes about a minute on one core.
 
+``--aortic-weight W`` (with ``--retune-maps`` or ``--correct-maps``): the refits minimise
+C² + W A², A the aortic pressure trace's misfit on the FE beat (`optim.congruency.fit_maps`),
+not C² alone.
+
 With ``--fidelity`` or ``--correct-maps``, each patient's checks are also written as a table,
-with the command that made them, to ``<out>/fidelity_<patient>_<model>[_passive].md``, which `lvenv
-report` shows on the inverse-problem page.
+with the command that made them, to ``<out>/fidelity_<patient>_<model>[_passive][_aorticW].md``
+(`optim.report.fidelity_file`), which `lvenv report` shows on the inverse-problem page.
 """
 
 from __future__ import annotations
@@ -61,6 +66,7 @@ from lvenv.presets import LO_MODELS
 from lvenv.metrics import METRICS, display, header
 from lvenv.plausibility import report, resolve
 from optim.congruency import FIDELITY_TOLERANCE, Fidelity, check_fidelity, difference_unit, format_difference, map_refit
+from optim.report import fidelity_file
 from optim.fit import FitRow, corrected_fit, fit_patients, synthetic_recovery
 
 
@@ -177,6 +183,8 @@ def main() -> None:
     ap.add_argument("--refit-passive", action="store_true",
                     help="with --retune-maps or --correct-maps: refit the passive maps {alpha, beta, a, b, c} too, each within its trained "
                          "value ÷ and × optim.congruency.PASSIVE_FREEDOM")
+    ap.add_argument("--aortic-weight", type=float, default=0.0, metavar="W",
+                    help="with --retune-maps or --correct-maps: the refits minimise C^2 + W A^2, A the aortic pressure's misfit on the FE beat")
     ap.add_argument("--no-plausibility", dest="plausibility", action="store_false",
                     help="drop the filling-pressure bands (mean atrial pressure, EDP) from the objective")
     ap.add_argument("--posterior-samples", type=int, default=4000, metavar="N",
@@ -189,6 +197,10 @@ def main() -> None:
         ap.error("--retune-maps refits the maps on the fidelity check's FE beat: it needs --fidelity")
     if a.refit_passive and not (a.retune_maps or a.correct_maps):
         ap.error("--refit-passive refits the passive maps with the others: it needs --retune-maps or --correct-maps")
+    if not (math.isfinite(a.aortic_weight) and a.aortic_weight >= 0):
+        ap.error(f"--aortic-weight {a.aortic_weight}: the weight must be a finite number >= 0")
+    if a.aortic_weight and not (a.retune_maps or a.correct_maps):
+        ap.error("--aortic-weight weighs the aortic pressure into the refits of the maps: it needs --retune-maps or --correct-maps")
     if a.correct_maps < 0:
         ap.error(f"--correct-maps {a.correct_maps}: the number of correction rounds must be >= 0")
     if a.synthetic:
@@ -223,28 +235,30 @@ def main() -> None:
     if a.correct_maps:
         checks = print_corrected(rows, a)
     elif a.fidelity:
-        checks = print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model, a.retune_maps, a.refit_passive)
+        checks = print_fidelity(rows, a.fidelity_mesh, a.fidelity_beats, a.model, a.retune_maps, a.refit_passive, a.aortic_weight)
     else:
         return
     command = shlex.join(["python", "scripts/fit_patients.py", *sys.argv[1:]])
     for patient, patient_checks in checks.items():
-        path = Path(a.out, f"fidelity_{patient}_{a.model}{'_passive' if a.refit_passive else ''}.md")
+        path = Path(a.out, fidelity_file(patient, a.model, a.refit_passive, a.aortic_weight))
         path.write_text(fidelity_markdown(patient_checks, command, a.fidelity_mesh, a.fidelity_beats))
         print(f"{patient}: the checks' table is in {path}")
 
 
 def print_fidelity(rows, mesh_size: float, beats: int, model: str = "single", retune_maps: bool = False,
-                   refit_passive: bool = False) -> dict[str, list[Check]]:
+                   refit_passive: bool = False, aortic_weight: float = 0.0) -> dict[str, list[Check]]:
     """The 3-D oracle at each patient's best fit (of the LO heart ``model``): LO, FE and their
     difference per target; with ``retune_maps`` also FE − LO with the maps refitted on that FE beat
-    (with ``refit_passive``, the passive maps too: `optim.congruency.map_refit`).
+    (with ``refit_passive``, the passive maps too: `optim.congruency.map_refit`; with
+    ``aortic_weight``, weighing the aortic pressure in).
     Returns each patient's check."""
     checks = {}
     for patient in dict.fromkeys(r.patient for r in rows):
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
         heart = builtin(patient, model).heart.replace(**best.parameters)
         names, bounds = map_refit(heart.lo, refit_passive)
-        rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats, retune=names if retune_maps else (), bounds=bounds)
+        rep = check_fidelity(heart, mesh_size=mesh_size, beats=beats, retune=names if retune_maps else (), bounds=bounds,
+                             aortic_weight=aortic_weight)
         print_check(f"fidelity of {patient} ({best.method} fit) against the 3-D oracle (h = {mesh_size:g} mm, {beats} beats)",
                     {n: getattr(heart.lo, n) for n in names}, rep)
         checks[patient] = [Check("trained", best, rep)]
@@ -259,7 +273,7 @@ def print_corrected(rows, a) -> dict[str, list[Check]]:
         best = min((r for r in rows if r.patient == patient), key=lambda r: r.mismatch)
         rounds = corrected_fit(builtin(patient, a.model), a.methods, a.correct_maps, first=best, beats=a.fidelity_beats,
                                num_envs=a.num_envs, budget=a.budget or 480, seed=a.seed, steps_per_beat=a.steps_per_beat,
-                               plausibility=a.plausibility, passive=a.refit_passive, mesh_size=a.fidelity_mesh)
+                               plausibility=a.plausibility, passive=a.refit_passive, aortic_weight=a.aortic_weight, mesh_size=a.fidelity_mesh)
         checks[patient] = []
         for r, step in enumerate(rounds):
             source = "trained" if r == 0 else f"refitted on round {r - 1}'s FE beat"

@@ -47,6 +47,8 @@ def test_help_of_every_command_works(argv, capsys):
         (["fit", "normal", "--retune-maps", "--correct-maps", "2"], "--correct-maps refits them at every round but the last"),
         (["fit", "normal", "--correct-maps", "11"], "11"),
         (["fit", "normal", "--fidelity", "--refit-passive"], "--refit-passive refits the passive maps with the others: it needs --retune-maps"),
+        (["fit", "normal", "--fidelity", "--aortic-weight", "1"], "--aortic-weight weighs the aortic pressure into the refits of the maps"),
+        (["fit", "normal", "--correct-maps", "1", "--aortic-weight", "-1"], "-1"),
         (["cohort", "r.csv", "--out", "o.csv", "--maps", "gp"], "'gp' is not one of"),
         (["fit", "normal", "--posterior", "mcmc"], "'mcmc' is not one of 'amortised', 'importance'"),
         (["fit", "p.json", "--model", "series3"], "--model series3: a patient record carries its own LO heart model"),

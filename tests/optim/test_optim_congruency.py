@@ -124,6 +124,51 @@ def test_fidelity_refits_a_passive_map_only_inside_the_box_it_is_given(tmp_path)
         cg.check_fidelity(heart, "multielement", retune=("c",), **oracle)
 
 
+def test_the_aortic_term_is_the_relative_l2_error_of_the_aortic_pressure():
+    """`trace_residuals` of any trace is the relative L2 error that C uses for V and P_lv: an LO
+    aortic pressure 2 % above the oracle's gives A = 0.02, and V and P_lv's give `residuals`."""
+    t = np.linspace(0.0, 1.0, 201)
+    fe = {"t": t, "V": 50.0 + 10.0 * np.sin(2 * np.pi * t), "P_lv": 5.0 + 4.0 * np.cos(2 * np.pi * t), "P_ao": 12.0 + np.sin(2 * np.pi * t)}
+    t_lo = np.linspace(0.0, 1.0, 1001)
+    p_ao = 12.0 + np.sin(2 * np.pi * t_lo)
+    a = np.sqrt(np.sum(cg.trace_residuals(fe, "P_ao", t_lo, np.stack([p_ao, 1.02 * p_ao])) ** 2, axis=1))
+    np.testing.assert_allclose(a, [0.0, 0.02], atol=2e-6)
+    v, p = 50.0 + 10.0 * np.sin(2 * np.pi * t_lo), 5.0 + 4.0 * np.cos(2 * np.pi * t_lo)
+    np.testing.assert_array_equal(cg.residuals(fe, t_lo, 1.01 * v, p),
+                                  np.concatenate([cg.trace_residuals(fe, "V", t_lo, 1.01 * v), cg.trace_residuals(fe, "P_lv", t_lo, p)], axis=1))
+
+
+def test_a_refit_weighing_the_aortic_pressure_in_trades_c_for_it():
+    """`fit_maps` with ``aortic_weight``: against the heart's own steady beat (C = 0 at its maps)
+    whose aortic pressure is raised 3 %, the refit without the weight keeps the maps exactly,
+    and with it moves μ1 to where C² + w A² is smaller, at a C above 0. An oracle beat
+    without an aortic pressure, a negative weight, and a weight without maps to refit are refused."""
+    heart = presets.normal()
+    sim = lvenv.simulate(heart, steps_per_beat=500)
+    own = {name: np.asarray(getattr(sim.traces, name)) for name in ("t", "V", "P_lv", "P_ao")}
+    raised = dict(own, P_ao=1.03 * own["P_ao"])
+    hearts = lambda lo: [dataclasses.replace(heart, lo=lo)]
+
+    def misfits(lo):
+        run = lvenv.simulate(hearts(lo), steps_per_beat=500)
+        c = np.sqrt(cg.congruency(raised, run.traces.t[0], run.traces.V, run.traces.P_lv)[0])
+        return c, np.sqrt(np.sum(cg.trace_residuals(raised, "P_ao", run.traces.t[0], run.traces.P_ao) ** 2))
+
+    settings = dict(budget=32, steps_per_beat=500, run_beats=None, progress=False)
+    kept, c_kept = cg.fit_maps(hearts, [raised], heart.lo, ("mu1",), **settings)
+    assert kept == heart.lo and c_kept[0] == 0.0
+    moved, c_moved = cg.fit_maps(hearts, [raised], heart.lo, ("mu1",), aortic_weight=4.0, **settings)
+    c, a = misfits(moved)
+    assert moved.mu1 != heart.lo.mu1 and c_moved[0] == pytest.approx(c, rel=1e-9) and c > 0.0
+    assert a < misfits(heart.lo)[1] and c**2 + 4.0 * a**2 < misfits(heart.lo)[1] ** 2 * 4.0
+    with pytest.raises(InputError, match="aortic_weight = 1 .* P_ao"):
+        cg.fit_maps(hearts, [{k: own[k] for k in ("t", "V", "P_lv")}], heart.lo, ("mu1",), aortic_weight=1.0, **settings)
+    with pytest.raises(InputError, match="aortic_weight = -1"):
+        cg.fit_maps(hearts, [raised], heart.lo, ("mu1",), aortic_weight=-1.0, **settings)
+    with pytest.raises(InputError, match="name the maps in retune"):
+        cg.check_fidelity(heart, "multielement", aortic_weight=1.0)
+
+
 def test_fit_active_searches_a_further_lo_parameter_inside_the_box_it_is_given():
     """``bounds`` adds a parameter to the search: against beats the single cell generated with a
     20 % stiffer passive map, fitting {μ2, c} from the trained c recovers that c; a box that

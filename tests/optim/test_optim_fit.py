@@ -117,9 +117,10 @@ def test_make_env_takes_a_patient_record_path_and_picks_the_scheme_of_its_model(
 
 def test_corrected_fit_with_passive_refits_the_passive_maps_inside_their_boxes_and_the_cli_shows_them(tmp_path):
     """``passive``: every round carries the nine maps, and round 1's passive maps, refitted on
-    round 0's beat, stay within the patient's own ÷ and × `PASSIVE_FREEDOM` (the oracle is the
-    patient's own LO heart; a passive map found again is `check_fidelity`'s test); `lvenv fit
-    --correct-maps`'s table gets a column per passive map."""
+    round 0's beat (with ``aortic_weight``, which that refit records and the last round, which
+    refits nothing, leaves out), stay within the patient's own ÷ and × `PASSIVE_FREEDOM` (the
+    oracle is the patient's own LO heart; a passive map found again is `check_fidelity`'s test);
+    `lvenv fit --correct-maps`'s table gets a column per passive map."""
     from rich.console import Console
 
     from lvenv import cli
@@ -129,8 +130,9 @@ def test_corrected_fit_with_passive_refits_the_passive_maps_inside_their_boxes_a
     normal = builtin("normal")
     patient = dataclasses.replace(normal, heart=normal.heart.replace(lo=truth))
     rounds = corrected_fit(patient, ("cma",), 1, backend="multielement", beats=5, retune_budget=32, num_envs=8, budget=64,
-                           steps_per_beat=500, passive=True, arrangement="parallel", n_elements=1, lo=truth, cache_dir=tmp_path)
+                           steps_per_beat=500, passive=True, aortic_weight=0.5, arrangement="parallel", n_elements=1, lo=truth, cache_dir=tmp_path)
     assert all(tuple(r.maps) == (*MAP_NAMES, *PASSIVE_NAMES) for r in rounds)
+    assert rounds[0].fidelity.retuned["aortic_weight"] == 0.5 and rounds[1].fidelity.retuned is None
     assert rounds[1].maps == rounds[0].fidelity.retuned["lo"]
     for name in PASSIVE_NAMES:
         low, high = sorted((getattr(truth, name) / PASSIVE_FREEDOM, getattr(truth, name) * PASSIVE_FREEDOM))

@@ -40,6 +40,9 @@ def _results(root):
                                                                      "| maps | C |\n|---|---|\n| round 3 | 3.04 % |\n")
     (root / "fit" / "fidelity_heart_failure_series3_passive.md").write_text(
         "Command: `python scripts/fit_patients.py --correct-maps 3 --refit-passive`.\n\n| maps | C |\n|---|---|\n| round 3 | 2.62 % |\n")
+    (root / "fit" / report.fidelity_file("heart_failure", "series3", passive=True, aortic_weight=0.5)).write_text(
+        "Command: `python scripts/fit_patients.py --correct-maps 3 --refit-passive --aortic-weight 0.5`.\n\n| maps | C |\n|---|---|\n"
+        "| round 3 | 2.71 % |\n")
 
 
 def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_path):
@@ -64,6 +67,8 @@ def test_pages_give_each_results_kind_its_command_date_and_numbers_from_out(tmp_
     assert "## Fidelity of the fits against the FE oracle\n\n**heart_failure, series3 heart**, results of " in inverse
     assert "Command: `python scripts/fit_patients.py --correct-maps 3`." in inverse and "| round 3 | 3.04 % |" in inverse
     assert "\n\n**heart_failure, series3 heart, passive maps refitted too**, results of " in inverse and "| round 3 | 2.62 % |" in inverse
+    assert ("\n\n**heart_failure, series3 heart, passive maps refitted too, aortic pressure weighed in (weight 0.5)**, results of "
+            in inverse and "| round 3 | 2.71 % |" in inverse)
     assert "Not run yet. Command: `lvenv cohort REPORTS.csv --out out/cohort/fits.csv`" in inverse
     assert "`python scripts/posterior_patients.py` (sampler ensemble)" in inverse and "| | tau2 (s) | Sa |" in inverse
     assert "| heart_failure | 0.2 (0.18–0.22) | 1 (0.5–1.5) |" in inverse and "P(Sa_HF < Sa_N) = 0.988" in inverse
