@@ -163,20 +163,21 @@ def corrected_fit(patient: str | Patient, methods: Sequence[str] = ("cma",), rou
                   seed: int = 0, steps_per_beat: int = 1000, plausibility: bool | Sequence[Band] = True, scheme: str | None = None,
                   options: Mapping[str, Mapping[str, Any]] | None = None, progress: bool | None = None, passive: bool = False,
                   aortic_weight: float = 0.0, **oracle_options: Any) -> list[CorrectionRound]:
-    """``rounds`` + 1 rounds of: fit ``patient`` with ``methods`` (:func:`fit_patients`; the best
-    fit), run the oracle ``backend`` at it for ``beats`` beats (`check_fidelity`), and, but in the
-    last round, refit the maps :data:`~optim.congruency.MAP_NAMES` on that beat (MADS
+    """``rounds`` + 1 rounds of: fit ``patient`` with ``methods`` (:func:`fit_patients`; the
+    best fit), run the oracle ``backend`` at it for ``beats`` beats (`check_fidelity`), and, but
+    in the last round, refit the maps :data:`~optim.congruency.MAP_NAMES` on that beat (MADS
     ``retune_budget`` evaluations, then least squares) for the next round's heart, whose fit
     starts from this round's fit. ``passive``: refit the passive maps
     :data:`~optim.congruency.PASSIVE_NAMES` too, each within the patient's own value ÷ and ×
     :data:`~optim.congruency.PASSIVE_FREEDOM` in every round (`optim.congruency.map_refit`).
-    ``aortic_weight``: the refits weigh the aortic pressure trace in (`optim.congruency.fit_maps`).
-    (The targets leave directions of the parameters free: fits from one start land at other
-    points along them in each round, where the refitted maps need not hold.) ``first``: the first
-    round's fit, if the patient was fitted already (with its own maps). ``scheme`` and ``options``: the fits' integration scheme and per-method options
+    ``aortic_weight``: the refits weigh the aortic pressure trace in
+    (`optim.congruency.fit_maps`). (The targets leave directions of the parameters free: fits
+    from one start land at other points along them in each round, where the refitted maps need
+    not hold.) ``first``: the first round's fit, if the patient was fitted already (with its own
+    maps). ``scheme`` and ``options``: the fits' integration scheme and per-method options
     (:func:`fit_patients`); ``progress``: the oracle's and the refits' progress bars. Each round
-    costs one oracle run (``beats`` beats; at h = 6 mm about 2 min a beat) and, but the last, one
-    refit of the maps (minutes on one core)."""
+    costs one oracle run (``beats`` beats; at h = 6 mm about 2 min a beat) and, but the last,
+    one refit of the maps (minutes on one core)."""
     patient = _patient(patient)
     rounds = integer("rounds", rounds, 0)
     aortic_weight = real("aortic_weight", aortic_weight, 0.0)
