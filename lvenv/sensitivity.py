@@ -168,9 +168,9 @@ def jacobian(
 
     volume_trace = not set(metrics).isdisjoint(FRAME_NAMES)
     d_y, d_m = jax.device_get(_beat_tangents(p_dev, y_dev, theta_dev, wrt=wrt, steps=steps_per_beat, volume_trace=volume_trace))
-    d_y, d_m = np.asarray(d_y)[..., :n], np.asarray(d_m)[:, [METRIC_NAMES.index(name) for name in metrics], :n]
+    d_y, d_m = np.asarray(d_y)[..., :n], np.asarray(d_m)[..., :n]
     f_y, f_th = np.moveaxis(d_y[:n_y], 0, 1), np.moveaxis(d_y[n_y:], 0, 1)  # (n_y, n_y, B), (n_y, k, B)
-    m_y, m_th = np.moveaxis(d_m[:n_y], 0, 1), np.moveaxis(d_m[n_y:], 0, 1)  # (m, n_y, B), (m, k, B)
+    m_y, m_th = np.moveaxis(d_m[:n_y], 0, 1), np.moveaxis(d_m[n_y:], 0, 1)  # (M, n_y, B), (M, k, B): all M metrics
 
     closed = np.asarray(p.circ.closed_loop, float)
     i_v, i_pc, i_pat = lo_model.circulation_index(p)
@@ -184,12 +184,15 @@ def jacobian(
             partial_c[j] = y_star[i_pat]
     volume_rhs = _cold_volume_rates(batch, wrt) - partial_c  # (k, B)
 
-    values = np.full((n, len(metrics), k), np.nan)
+    # Every metric's row is computed and the asked-for ones are taken after: a product's shape
+    # fixes its rounding, so a metric's derivative does not depend on which others are asked for.
+    values = np.full((n, len(METRIC_NAMES), k), np.nan)
     for b in np.flatnonzero(np.atleast_1d(steady.status) == "ok"):
         a = np.vstack([np.eye(n_y) - f_y[:, :, b], closed[b] * grad_c[:, b][None]])
         rhs = np.vstack([f_th[:, :, b], closed[b] * volume_rhs[:, b][None]])
         dy_star = np.linalg.lstsq(a, rhs, rcond=None)[0]
         values[b] = m_y[:, :, b] @ dy_star + m_th[:, :, b]
+    values = values[:, [METRIC_NAMES.index(name) for name in metrics]]
     at = {name: np.asarray(steady.metrics[name]) for name in metrics}
     if single:
         return Jacobian(wrt, metrics, values[0], {name: float(v[0]) for name, v in at.items()}, str(steady.status[0]))
