@@ -37,7 +37,7 @@ from lvenv.validation import InputError
 from optim.congruency import ACTIVE_BOUNDS, MAP_NAMES, congruency, fit_maps, one_beat, passes_validation, train
 from optim.diagnosis import decompose
 
-__all__ = ["UNSEEN", "INTERIOR", "SWEEPS", "scenario", "generalisation", "retune", "map_transfer", "multielement_table"]
+__all__ = ["UNSEEN", "INTERIOR", "OUTER", "SWEEPS", "scenario", "generalisation", "retune", "map_transfer", "multielement_table"]
 
 #: The ends of the unseen scenarios: parameter changes from the training values (τ2 as a factor).
 UNSEEN: dict[str, dict[str, float]] = {
@@ -54,6 +54,16 @@ INTERIOR: dict[str, tuple[str, dict[str, float]]] = {
     "n0_0.5": ("n0_0.6", {"n0": 0.6}), "n0_0.9": ("n0_0.8", {"n0": 0.8}),
     "nA_1": ("nA_3", {"nA": 3.0}), "nA_10": ("nA_7.5", {"nA": 7.5}),
     "tau2_x2": ("tau2_x1.5", {"tau2_factor": 1.5}), "R1_0.1": ("R1_0.05", {"R1": 0.05}),
+}
+
+#: A second point inside each unseen scenario's axis, about three quarters of the way from the
+#: training value to the scenario's end (on a log scale for Vmax's factor), for maps that follow
+#: the cell to second order (`scripts/smooth_maps.py --order 2`): scenario → (name, change).
+OUTER: dict[str, tuple[str, dict[str, float]]] = {
+    "vmax_x0.25": ("vmax_x0.35", {"vmax_factor": 0.35}), "vmax_x4": ("vmax_x2.8", {"vmax_factor": 2.8}),
+    "n0_0.5": ("n0_0.55", {"n0": 0.55}), "n0_0.9": ("n0_0.85", {"n0": 0.85}),
+    "nA_1": ("nA_2", {"nA": 2.0}), "nA_10": ("nA_8.75", {"nA": 8.75}),
+    "tau2_x2": ("tau2_x1.75", {"tau2_factor": 1.75}), "R1_0.1": ("R1_0.075", {"R1": 0.075}),
 }
 
 #: Table 4's sweeps, ten values each (τ2 as a factor of the training value).

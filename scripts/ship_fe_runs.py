@@ -4,9 +4,10 @@
 
 For each built-in heart (N, HF, `scripts.train_presets.HEARTS`): the runs its training takes
 (`optim.congruency.oracle_data`: the passive curve and the beats ①②③, h = 6 mm), its
-unseen scenarios (`optim.studies.UNSEEN`, one beat each under condition ②) and a point inside
-each scenario's axis (`optim.studies.INTERIOR`), the runs `scripts/candidate_study.py hearts` and
-`retune`, `scripts/generalisation.py` and `scripts/train_presets.py` compare against
+unseen scenarios (`optim.studies.UNSEEN`, one beat each under condition ②) and two points inside
+each scenario's axis (`optim.studies.INTERIOR`, `optim.studies.OUTER`), the runs
+`scripts/candidate_study.py hearts` and `retune`, `scripts/generalisation.py`,
+`scripts/smooth_maps.py` and `scripts/train_presets.py` compare against
 (``--no-unseen``: the training runs alone; ``--dt`` and ``--mesh-size``: the oracle's, as for
 `candidate_study.py hearts`). Each is
 read from the oracle's cache or run (about a minute per beat on one core, more while other work
@@ -29,7 +30,7 @@ import fe_oracle  # noqa: E402
 from fe_oracle import cache  # noqa: E402
 from lvenv import presets  # noqa: E402
 from optim import congruency  # noqa: E402
-from optim.studies import INTERIOR, UNSEEN, scenario  # noqa: E402
+from optim.studies import INTERIOR, OUTER, UNSEEN, scenario  # noqa: E402
 from scripts.train_presets import HEARTS  # noqa: E402
 
 
@@ -56,7 +57,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--hearts", nargs="+", choices=sorted(HEARTS), default=sorted(HEARTS))
     add_oracle_arguments(parser)
-    parser.add_argument("--no-unseen", action="store_true", help="the training runs alone, not the unseen scenarios and interior points")
+    parser.add_argument("--no-unseen", action="store_true", help="the training runs alone, not the unseen scenarios and the points inside their axes")
     args = parser.parse_args()
     oracle = oracle_options(args)
     runs = {}
@@ -64,7 +65,7 @@ def main() -> None:
         heart = getattr(presets, name)()
         data = congruency.oracle_data(heart.geometry, cell=heart.cell, progress=False, **oracle)
         results = {f"training {case}": r for case, r in (("passive", data.passive), *((str(k), b) for k, b in data.beats.items()))}
-        for label, change in ({} if args.no_unseen else {**UNSEEN, **dict(INTERIOR.values())}).items():
+        for label, change in ({} if args.no_unseen else {**UNSEEN, **dict(INTERIOR.values()), **dict(OUTER.values())}).items():
             h = scenario(heart, change)
             results[label] = fe_oracle.run(h.geometry, h.circulation, cell=h.cell, progress=False, **oracle)
         for label, result in results.items():

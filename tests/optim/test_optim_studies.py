@@ -3,7 +3,7 @@ beat, and carried along the scenario's axis, against an oracle that is the LO he
 known maps (the multi-element backend with one element). Whatever the frozen maps were, the
 retuned maps must come back to those maps and C to zero, at the scenario's end, at its interior
 point and at the training beat, so the maps carried from them along the axis must fit too. The
-first-order maps of scripts/first_order_maps.py are checked against the same oracle."""
+smooth maps of scripts/smooth_maps.py are checked against the same oracle."""
 
 import dataclasses
 
@@ -60,34 +60,42 @@ def test_a_scenario_without_an_interior_point_is_refused_by_name():
         studies.map_transfer(presets.normal(), {"sa_x2": {"Sa": 2.0}}, "multielement")
 
 
-def test_first_order_maps_are_the_trained_ones_at_the_training_beats_and_stay_in_their_boxes():
-    """scripts/first_order_maps.py: x = 0 gives the trained maps at any position; the x box of a
-    position puts its maps on the boxes' edges, on either side of the training beat."""
-    from scripts.first_order_maps import DELAY_UNIT, Carry
+def test_smooth_maps_are_the_trained_ones_at_the_training_beats_and_stay_in_their_boxes():
+    """scripts/smooth_maps.py: x = 0 gives the trained maps at any position, second order adds x2
+    f² to the exponent, and the x box of a position (order 1) puts its maps on the boxes' edges,
+    on either side of the training beat."""
+    from scripts.smooth_maps import DELAY_UNIT, Carry
 
     heart = presets.normal()
     carry = Carry(heart, ("mu1", "delay", "a"))
     np.testing.assert_array_equal(carry.maps(np.zeros(3), 2.0), [heart.lo.mu1, heart.lo.delay, heart.lo.a])
     assert carry.maps(np.array([np.log(2.0), 1.0, 0.0]), 1.5) == pytest.approx([heart.lo.mu1 * 2.0**1.5, heart.lo.delay + 1.5 * DELAY_UNIT, heart.lo.a])
+    second = Carry(heart, ("mu1", "delay", "a"), order=2)
+    assert second.maps(np.array([0.0, 0.0, 0.0, np.log(2.0), 1.0, 0.0]), 1.5) == pytest.approx([heart.lo.mu1 * 2.0**2.25, heart.lo.delay + 2.25 * DELAY_UNIT, heart.lo.a])
     for f in (2.0, -1.0):
         lower, upper = carry.x_box(f)
         assert np.all(lower < 0) and np.all(upper > 0)
         np.testing.assert_allclose(np.sort(np.stack([carry.maps(lower, f), carry.maps(upper, f)]), axis=0), [carry.lower, carry.upper], rtol=1e-12)
 
 
-def test_first_order_maps_fit_the_interior_beat_and_a_large_ridge_keeps_the_trained_maps(tmp_path):
+def test_smooth_maps_fit_the_inner_beats_and_a_large_ridge_keeps_the_trained_maps(tmp_path):
     """Against an oracle with other maps (the LO heart itself, one element), the carried maps fit
-    the interior point's beat (from x = 0, least squares) and are carried to the end; with a ridge
-    far above C² they stay the trained ones, so the end's C is the frozen maps'."""
-    from scripts.first_order_maps import study
+    the interior point's beat (from x = 0, least squares), and at second order the outer point's
+    too, and are carried to the end; with a ridge far above C² they stay the trained ones, so the
+    end's C is the frozen maps'."""
+    from scripts.smooth_maps import study
 
     heart = dataclasses.replace(presets.normal(lo="table3"), lo=dataclasses.replace(TRUTH, mu1=0.08, mu2=0.24, delay=0.04))
     options = dict(arrangement="parallel", n_elements=1, lo=TRUTH, cache_dir=tmp_path)
     one = {"n0_0.9": studies.UNSEEN["n0_0.9"]}
-    (fitted,) = study("N", heart, NAMES, 0.0, one, "multielement", **options)
-    (kept,) = study("N", heart, NAMES, 1e8, one, "multielement", **options)
-    assert fitted["interior"] == "n0_0.8" and fitted["w"] == pytest.approx((0.9 - heart.cell.n0) / (0.8 - heart.cell.n0))
-    assert fitted["interior_C_frozen"] > 0.02 and fitted["interior_C_fitted"] < 1e-3, "the truth's maps are reachable at the interior point"
-    assert fitted["x"]["mu1"] == pytest.approx(np.log(TRUTH.mu1 / heart.lo.mu1), rel=1e-2)
-    assert max(abs(v) for v in kept["x"].values()) < 1e-4
+    (fitted,) = study("N", heart, NAMES, 0.0, scenarios=one, backend="multielement", **options)
+    (kept,) = study("N", heart, NAMES, 1e8, scenarios=one, backend="multielement", **options)
+    (point,) = fitted["fitted"]
+    assert point["scenario"] == "n0_0.8" and fitted["w"] == pytest.approx((0.9 - heart.cell.n0) / (0.8 - heart.cell.n0))
+    assert point["C_frozen"] > 0.02 and point["C_fitted"] < 1e-3, "the truth's maps are reachable at the interior point"
+    assert fitted["x"][0][0] == pytest.approx(np.log(TRUTH.mu1 / heart.lo.mu1), rel=1e-2), "mu1"
+    assert np.max(np.abs(kept["x"])) < 1e-4
+    (second,) = study("N", heart, NAMES, 0.0, order=2, scenarios=one, backend="multielement", **options)
+    assert [p["scenario"] for p in second["fitted"]] == ["n0_0.8", "n0_0.85"] and len(second["x"]) == 2
+    assert all(p["C_frozen"] > 0.02 and p["C_fitted"] < 1e-3 for p in second["fitted"])
     assert kept["end_C_carried"] == pytest.approx(kept["end_C_frozen"], rel=1e-3) and kept["end_C_frozen"] == fitted["end_C_frozen"]

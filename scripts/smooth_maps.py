@@ -1,0 +1,172 @@
+"""Would maps that follow the cell smoothly carry over to the unseen scenarios (issue 30)? JSON
+out, and a table in ``--out``/smooth_maps.md.
+
+    python scripts/smooth_maps.py [--hearts normal heart_failure] [--model series3] [--passive] [--order 1] [--ridge 0.01]
+
+Along each scenario's axis (`optim.studies.UNSEEN`, its position s: `optim.studies._position`)
+the maps are the trained ones changed smoothly with the position: with f = s / s_i, s_i the
+position of the axis' interior point (`optim.studies.INTERIOR`), and e = x1 f (``--order 1``) or
+x1 f + x2 f² (``--order 2``), m(s) = m0 exp(e) for μ1, μ2, γ (and with ``--passive`` α, β, a, b,
+c) and delay(s) = delay0 + `DELAY_UNIT` e. At s = 0 (the training beats) the maps are the trained
+ones, so the training C does not change. x is fitted by least squares from x = 0 on the
+congruency residuals (`optim.congruency.residuals`) of the interior point's FE beat, and with
+``--order 2`` also of the point three quarters of the way to the end (`optim.studies.OUTER`),
+plus ``--ridge`` × ‖x‖² (a ridge on the maps' relative change). Order 1 keeps the maps at the
+fitted points and at the end inside their boxes (`optim.congruency.ACTIVE_BOUNDS`,
+`optim.congruency.passive_bounds`); order 2 clips them into the boxes. The maps are then carried
+to the scenario's end, which the fit never sees: C and the largest pointwise pressure error there
+(`optim.studies.generalisation`'s measures) against the frozen maps'. It reads the shipped FE
+beats (`fe_oracle.run`'s cache) and runs no FE; about 2 min per heart with the nine maps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import sys
+
+import numpy as np
+from scipy.optimize import least_squares
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+import fe_oracle  # noqa: E402
+from lvenv import presets  # noqa: E402
+from lvenv.params import Heart  # noqa: E402
+from optim.congruency import ACTIVE_BOUNDS, MAP_NAMES, PASSIVE_NAMES, one_beat, passes_validation, passive_bounds, residuals  # noqa: E402
+from optim.studies import INTERIOR, OUTER, UNSEEN, _errors, _position, scenario  # noqa: E402
+
+#: LO steps per beat, as `optim.studies` runs its scenarios.
+STEPS_PER_BEAT = 1000
+#: The delay's change (s) per unit of x at the interior point.
+DELAY_UNIT = 0.05
+
+
+class Carry:
+    """The smooth maps of one heart: m0 the trained maps of ``names``, their boxes, and the order
+    of e in the position (module docstring); x holds the order's coefficient vectors, x1 first."""
+
+    def __init__(self, heart: Heart, names: tuple[str, ...], order: int = 1):
+        self.heart, self.names, self.order = heart, names, order
+        box = {**ACTIVE_BOUNDS, **passive_bounds(heart.lo)}
+        self.m0 = np.array([float(getattr(heart.lo, n)) for n in names])
+        self.log = np.array([n != "delay" for n in names])
+        self.lower, self.upper = (np.array([box[n][i] for n in names]) for i in (0, 1))
+
+    def maps(self, x: np.ndarray, f: float) -> np.ndarray:
+        """The maps at f times the interior point's position (not clipped)."""
+        e = sum(row * f ** (k + 1) for k, row in enumerate(np.reshape(x, (self.order, len(self.names)))))
+        return np.where(self.log, self.m0 * np.exp(e), self.m0 + DELAY_UNIT * e)
+
+    def x_box(self, f: float) -> tuple[np.ndarray, np.ndarray]:
+        """The x of order 1 whose maps at f times the interior position lie inside the boxes."""
+        ends = [np.where(self.log, np.log(np.where(self.log, b, 1.0) / self.m0), (b - self.m0) / DELAY_UNIT) / f for b in (self.lower, self.upper)]
+        return np.minimum(*ends), np.maximum(*ends)
+
+    def heart_at(self, change: dict[str, float], x: np.ndarray, f: float) -> Heart:
+        """The heart in the scenario ``change`` with the maps at f times the interior position,
+        clipped into their boxes."""
+        values = np.clip(self.maps(x, f), self.lower, self.upper)
+        lo = dataclasses.replace(self.heart.lo, **dict(zip(self.names, map(float, values))))
+        return scenario(dataclasses.replace(self.heart, lo=lo), change)
+
+
+def measure(oracle: dict, hearts: list[Heart]) -> list[dict[str, float]]:
+    """C and the largest pointwise errors of each heart's beat against ``oracle`` (NaN for a heart
+    whose passive maps fail validation)."""
+    ok = [passes_validation(h) for h in hearts]
+    _, t, v, p, _ = one_beat([h for h, good in zip(hearts, ok) if good], STEPS_PER_BEAT)
+    rows, k = [], 0
+    for good in ok:
+        if good:
+            rows.append(_errors(oracle, t[k], v[k], p[k]))
+            k += 1
+        else:
+            rows.append({"C": float("nan"), "max_rel_error_V": float("nan"), "max_rel_error_P": float("nan")})
+    return rows
+
+
+def study(label: str, heart: Heart, names: tuple[str, ...], ridge: float, order: int = 1, scenarios: dict[str, dict[str, float]] = UNSEEN,
+          backend: str = "dolfinx", **oracle_options) -> list[dict]:
+    """One row per scenario of ``scenarios`` (module docstring), against ``backend``'s beats
+    (``oracle_options`` go to `fe_oracle.run`); ``label`` names the heart in the progress lines."""
+    carry, rows = Carry(heart, names, order), []
+    zero = np.zeros(order * len(names))
+    for end, change in scenarios.items():
+        points = [INTERIOR[end], *([OUTER[end]] if order == 2 else [])]
+        s_i = _position(heart, points[0][1])
+        at = {name: (ch, _position(heart, ch) / s_i) for name, ch in [*points, (end, change)]}
+        oracles = {}
+        for name, (ch, _) in at.items():
+            target = scenario(heart, ch)
+            oracles[name] = fe_oracle.run(target.geometry, target.circulation, backend, cell=target.cell, progress=False, **oracle_options).traces
+
+        def residual(x: np.ndarray) -> np.ndarray:
+            parts = []
+            for name, _ in points:
+                ch, f = at[name]
+                h, samples = carry.heart_at(ch, x, f), 2 * len(oracles[name]["t"])
+                r = np.ones(samples)
+                if passes_validation(h):
+                    status, t, v, p, _ = one_beat([h], STEPS_PER_BEAT)
+                    beat = residuals(oracles[name], t[0], v, p)[0]
+                    r = beat if status[0] == "ok" and np.all(np.isfinite(beat)) else r
+                parts.append(r)
+            return np.concatenate([*parts, np.sqrt(ridge) * x])
+
+        if order == 1:
+            (lo1, hi1), (lo_w, hi_w) = carry.x_box(1.0), carry.x_box(at[end][1])
+            bounds = (np.minimum(np.maximum(lo1, lo_w), -1e-9), np.maximum(np.minimum(hi1, hi_w), 1e-9))
+        else:
+            bounds = (-np.inf, np.inf)
+        fit = least_squares(residual, zero, bounds=bounds, diff_step=1e-4, max_nfev=60 * len(zero))
+        fitted = []
+        for name, _ in points:
+            ch, f = at[name]
+            before, after = measure(oracles[name], [carry.heart_at(ch, zero, f), carry.heart_at(ch, fit.x, f)])
+            fitted.append({"scenario": name, "C_frozen": before["C"], "C_fitted": after["C"]})
+        frozen_e, carried_e = measure(oracles[end], [carry.heart_at(change, zero, at[end][1]), carry.heart_at(change, fit.x, at[end][1])])
+        rows.append({"scenario": end, "w": at[end][1], "x": np.reshape(fit.x, (order, len(names))).round(4).tolist(), "evaluations": int(fit.nfev),
+                     "fitted": fitted, "end_C_frozen": frozen_e["C"], "end_C_carried": carried_e["C"],
+                     "end_P_error_frozen": frozen_e["max_rel_error_P"], "end_P_error_carried": carried_e["max_rel_error_P"]})
+        print(f"{label} {end}: C {frozen_e['C']:.4f} -> {carried_e['C']:.4f}", file=sys.stderr, flush=True)
+    return rows
+
+
+def table(results: dict[str, list[dict]], command: str) -> str:
+    """The results as a markdown table, with the command that made it."""
+    lines = [f"Made by `{command}`.", "", "| heart | end | fitted points: C frozen → fitted | end C frozen → carried | end pressure error frozen → carried |",
+             "|---|---|---|---|---|"]
+    for name, rows in results.items():
+        for r in rows:
+            fitted = "; ".join(f"{p['scenario']} {100 * p['C_frozen']:.1f} → {100 * p['C_fitted']:.1f} %" for p in r["fitted"])
+            lines.append(f"| {name} | {r['scenario']} | {fitted} | {100 * r['end_C_frozen']:.1f} → {100 * r['end_C_carried']:.1f} % "
+                         f"| {100 * r['end_P_error_frozen']:.1f} → {100 * r['end_P_error_carried']:.1f} % |")
+        worst = max(rows, key=lambda r: r["end_C_carried"])
+        lines.append(f"| {name} | **worst end** | | {100 * max(r['end_C_frozen'] for r in rows):.1f} → {100 * worst['end_C_carried']:.1f} % ({worst['scenario']}) | |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--hearts", nargs="+", default=["normal", "heart_failure"], choices=["normal", "heart_failure"])
+    parser.add_argument("--model", default="series3", choices=sorted(presets.LO_MODELS), help="the LO heart model (default series3)")
+    parser.add_argument("--passive", action="store_true", help="carry the passive maps too (nine maps)")
+    parser.add_argument("--order", type=int, default=1, choices=(1, 2), help="the maps' change in the position: linear or quadratic (default 1)")
+    parser.add_argument("--ridge", type=float, default=0.01, help="weight of ‖x‖² beside C² (default 0.01)")
+    parser.add_argument("--out", type=pathlib.Path, default=pathlib.Path("out/diagnosis"))
+    args = parser.parse_args()
+    if not args.ridge >= 0:
+        parser.error(f"--ridge = {args.ridge} must be >= 0")
+    names = (*MAP_NAMES, *PASSIVE_NAMES) if args.passive else MAP_NAMES
+    results = {name: study(name, getattr(presets, name)(model=args.model), names, args.ridge, args.order) for name in args.hearts}
+    command = "python scripts/smooth_maps.py " + " ".join(sys.argv[1:])
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "smooth_maps.md").write_text(table(results, command))
+    print(json.dumps({"command": command, "names": names, "order": args.order, "ridge": args.ridge, "results": results}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
