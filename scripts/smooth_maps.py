@@ -104,17 +104,18 @@ def study(label: str, heart: Heart, names: tuple[str, ...], ridge: float, order:
             oracles[name] = fe_oracle.run(target.geometry, target.circulation, backend, cell=target.cell, progress=False, **oracle_options).traces
 
         def residual(x: np.ndarray) -> np.ndarray:
-            parts = []
-            for name, _ in points:
-                ch, f = at[name]
-                h, samples = carry.heart_at(ch, x, f), 2 * len(oracles[name]["t"])
-                r = np.ones(samples)
-                if passes_validation(h):
-                    status, t, v, p, _ = one_beat([h], STEPS_PER_BEAT)
-                    beat = residuals(oracles[name], t[0], v, p)[0]
-                    r = beat if status[0] == "ok" and np.all(np.isfinite(beat)) else r
-                parts.append(r)
-            return np.concatenate([*parts, np.sqrt(ridge) * x])
+            """The inner points' congruency residuals (ones for a beat that cannot run or fails),
+            from one batched simulation, and the ridge's."""
+            hearts = {name: carry.heart_at(at[name][0], x, at[name][1]) for name, _ in points}
+            valid = [name for name, h in hearts.items() if passes_validation(h)]
+            parts = {name: np.ones(2 * len(oracles[name]["t"])) for name in hearts}
+            if valid:
+                status, t, v, p, _ = one_beat([hearts[name] for name in valid], STEPS_PER_BEAT)
+                for i, name in enumerate(valid):
+                    beat = residuals(oracles[name], t[i], v[i:i + 1], p[i:i + 1])[0]
+                    if status[i] == "ok" and np.all(np.isfinite(beat)):
+                        parts[name] = beat
+            return np.concatenate([*parts.values(), np.sqrt(ridge) * x])
 
         if order == 1:
             (lo1, hi1), (lo_w, hi_w) = carry.x_box(1.0), carry.x_box(at[end][1])
