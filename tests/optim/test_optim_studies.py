@@ -44,6 +44,7 @@ def _recovered(row: dict, heart, names) -> None:
     """The retuned maps of ``row`` are the oracle's, at the scenario's end and its interior point."""
     assert row["scenario"] == "n0_0.9" and row["change"] == {"n0": 0.9}
     assert row["C_frozen"] > 0.05 and row["C_retuned"] < 1e-4
+    assert row["P_error_frozen"] > 0.05 and row["P_error_retuned"] < 1e-3
     for name in names:
         assert row["retuned"][name] == pytest.approx(getattr(TRUTH, name), rel=1e-3), name
         assert row["frozen"][name] == getattr(heart.lo, name)
@@ -82,20 +83,40 @@ def test_smooth_maps_fit_the_inner_beats_and_a_large_ridge_keeps_the_trained_map
     """Against an oracle with other maps (the LO heart itself, one element), the carried maps fit
     the interior point's beat (from x = 0, least squares), and at second order the outer point's
     too, and are carried to the end; with a ridge far above C² they stay the trained ones, so the
-    end's C is the frozen maps'."""
+    end's C is the frozen maps'. ``check_dt`` measures the end against the oracle's beat at that
+    time step too, which moves each C by no more than the oracle's own change."""
     from scripts.smooth_maps import study
 
     heart = dataclasses.replace(presets.normal(lo="table3"), lo=dataclasses.replace(TRUTH, mu1=0.08, mu2=0.24, delay=0.04))
     options = dict(arrangement="parallel", n_elements=1, lo=TRUTH, cache_dir=tmp_path)
     one = {"n0_0.9": studies.UNSEEN["n0_0.9"]}
-    (fitted,) = study("N", heart, NAMES, 0.0, scenarios=one, backend="multielement", **options)
+    (fitted,) = study("N", heart, NAMES, 0.0, scenarios=one, backend="multielement", check_dt=0.0005, **options)
     (kept,) = study("N", heart, NAMES, 1e8, scenarios=one, backend="multielement", **options)
     (point,) = fitted["fitted"]
     assert point["scenario"] == "n0_0.8" and fitted["w"] == pytest.approx((0.9 - heart.cell.n0) / (0.8 - heart.cell.n0))
     assert point["C_frozen"] > 0.02 and point["C_fitted"] < 1e-3, "the truth's maps are reachable at the interior point"
     assert fitted["x"][0][0] == pytest.approx(np.log(TRUTH.mu1 / heart.lo.mu1), rel=1e-2), "mu1"
-    assert np.max(np.abs(kept["x"])) < 1e-4
+    assert np.max(np.abs(kept["x"])) < 1e-4 and "end_check" not in kept
+    check = fitted["end_check"]
+    assert check["dt"] == 0.0005 and 0.0 < check["oracle_C"] < 0.01
+    for k in ("frozen", "carried"):
+        assert abs(check[f"{k}_C"] - fitted[f"end_C_{k}"]) <= 2.0 * check["oracle_C"], k
     (second,) = study("N", heart, NAMES, 0.0, order=2, scenarios=one, backend="multielement", **options)
     assert [p["scenario"] for p in second["fitted"]] == ["n0_0.8", "n0_0.85"] and len(second["x"]) == 2
     assert all(p["C_frozen"] > 0.02 and p["C_fitted"] < 1e-3 for p in second["fitted"])
     assert kept["end_C_carried"] == pytest.approx(kept["end_C_frozen"], rel=1e-3) and kept["end_C_frozen"] == fitted["end_C_frozen"]
+
+
+def test_the_pointwise_errors_skip_the_oracles_first_sample_only():
+    """At t = 0 the FE wall carries no active tension yet while the LO pressure carries its resting
+    cells' (`studies._errors`): a miss there alone counts in C but not in the largest pointwise
+    error, while the same miss one sample later counts in both."""
+    t = np.linspace(0.0, 0.8, 161)
+    shape = np.sin(np.pi * t / 0.8) ** 2
+    oracle = {"t": t, "V": 120.0 - 50.0 * shape, "P_lv": 0.66 + 12.0 * shape}
+    first, second = oracle["P_lv"].copy(), oracle["P_lv"].copy()
+    first[0] += 1.5
+    second[1] += 1.5
+    at_start, later = studies._errors(oracle, t, oracle["V"], first), studies._errors(oracle, t, oracle["V"], second)
+    assert at_start["C"] > 0.0 and at_start["max_rel_error_P"] == 0.0 and at_start["max_rel_error_V"] == 0.0
+    assert later["max_rel_error_P"] == pytest.approx(1.5 / oracle["P_lv"].max())
