@@ -66,8 +66,9 @@ oracle's own training beats at its defaults and at these. Writes ``--out``/candi
 scenario the maps the candidate trains ({μ1, μ2, γ, delay}; series3-passive also its passive
 map, in the same boxes, :func:`refitted`) refitted on that scenario's own FE beat
 (`optim.studies.retune`, MADS budget ``--budget``, then least squares): C and the largest
-pointwise pressure error with the maps frozen against both with the maps retuned. The retuned C is how close the candidate can come to the
-scenario's beat at all; the gap between the two is what the maps' not carrying over costs.
+pointwise pressure error with the maps frozen against both with the maps retuned. The retuned C
+is how close the candidate can come to the scenario's beat at all; the gap between the two is
+what the maps' not carrying over costs.
 Then whether maps regressed on the cell would carry over (`optim.studies.map_transfer`): the
 maps refitted at the training beat and at a point inside each scenario's axis
 (`optim.studies.INTERIOR`, 8 more FE beats per heart, shipped), carried linearly to the

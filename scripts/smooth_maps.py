@@ -136,15 +136,16 @@ def study(label: str, heart: Heart, names: tuple[str, ...], ridge: float, order:
             fitted.append({"scenario": name, "C_frozen": before["C"], "C_fitted": after["C"]})
         ends = [carry.heart_at(change, zero, at[end][1]), carry.heart_at(change, fit.x, at[end][1])]
         frozen_e, carried_e = measure(oracles[end], ends)
+        rows.append({"scenario": end, "w": at[end][1], "x": np.reshape(fit.x, (order, len(names))).round(4).tolist(), "evaluations": int(fit.nfev),
+                     "fitted": fitted, "end_C_frozen": frozen_e["C"], "end_C_carried": carried_e["C"],
+                     "end_P_error_frozen": frozen_e["max_rel_error_P"], "end_P_error_carried": carried_e["max_rel_error_P"]})
         if check_dt is not None:
             target = scenario(heart, change)
             fine = fe_oracle.run(target.geometry, target.circulation, backend, cell=target.cell, dt=check_dt, progress=False, **oracle_options).traces
             oracle_change = _errors(oracles[end], fine["t"], fine["V"], fine["P_lv"])
-            check = {"dt": check_dt, "oracle_C": oracle_change["C"], "oracle_P_error": oracle_change["max_rel_error_P"],
-                     **{f"{k}_{m}": e[key] for k, e in zip(("frozen", "carried"), measure(fine, ends)) for m, key in (("C", "C"), ("P_error", "max_rel_error_P"))}}
-        rows.append({**({"end_check": check} if check_dt is not None else {}), "scenario": end, "w": at[end][1], "x": np.reshape(fit.x, (order, len(names))).round(4).tolist(), "evaluations": int(fit.nfev),
-                     "fitted": fitted, "end_C_frozen": frozen_e["C"], "end_C_carried": carried_e["C"],
-                     "end_P_error_frozen": frozen_e["max_rel_error_P"], "end_P_error_carried": carried_e["max_rel_error_P"]})
+            rows[-1]["end_check"] = {"dt": check_dt, "oracle_C": oracle_change["C"], "oracle_P_error": oracle_change["max_rel_error_P"],
+                                     **{f"{k}_{m}": e[key] for k, e in zip(("frozen", "carried"), measure(fine, ends))
+                                        for m, key in (("C", "C"), ("P_error", "max_rel_error_P"))}}
         print(f"{label} {end}: C {frozen_e['C']:.4f} -> {carried_e['C']:.4f}", file=sys.stderr, flush=True)
     return rows
 
