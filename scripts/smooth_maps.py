@@ -16,7 +16,9 @@ plus ``--ridge`` × ‖x‖² (a ridge on the maps' relative change). Order 1 ke
 fitted points and at the end inside their boxes (`optim.congruency.ACTIVE_BOUNDS`,
 `optim.congruency.passive_bounds`); order 2 clips them into the boxes. The maps are then carried
 to the scenario's end, which the fit never sees: C and the largest pointwise pressure error there
-(`optim.studies.generalisation`'s measures) against the frozen maps'. It reads the shipped FE
+(`optim.studies.generalisation`'s measures) against the frozen maps'. With ``--order 1`` the
+outer point is held out: C there with the carried maps (``held_out``) checks the carry on an FE
+beat that the fit does not see, without using the scenario's end. It reads the shipped FE
 beats (`fe_oracle.run`'s cache) and runs no FE; about 2 min per heart with the nine maps.
 ``--ends`` keeps some of the scenarios. ``--check-dt`` also measures both at each end against the
 FE beat at that time step (s; an FE run of a few minutes per end, cached), to tell the oracle's
@@ -101,9 +103,10 @@ def study(label: str, heart: Heart, names: tuple[str, ...], ridge: float, order:
     carry, rows = Carry(heart, names, order), []
     zero = np.zeros(order * len(names))
     for end, change in scenarios.items():
-        points = [INTERIOR[end], *([OUTER[end]] if order == 2 else [])]
+        inner = [INTERIOR[end], OUTER[end]]
+        points, held = inner[:order], inner[order:]
         s_i = _position(heart, points[0][1])
-        at = {name: (ch, _position(heart, ch) / s_i) for name, ch in [*points, (end, change)]}
+        at = {name: (ch, _position(heart, ch) / s_i) for name, ch in [*inner, (end, change)]}
         oracles = {}
         for name, (ch, _) in at.items():
             target = scenario(heart, ch)
@@ -129,15 +132,18 @@ def study(label: str, heart: Heart, names: tuple[str, ...], ridge: float, order:
         else:
             bounds = (-np.inf, np.inf)
         fit = least_squares(residual, zero, bounds=bounds, diff_step=1e-4, max_nfev=60 * len(zero))
-        fitted = []
-        for name, _ in points:
+        fitted, held_out = [], []
+        for name, _ in inner:
             ch, f = at[name]
             before, after = measure(oracles[name], [carry.heart_at(ch, zero, f), carry.heart_at(ch, fit.x, f)])
-            fitted.append({"scenario": name, "C_frozen": before["C"], "C_fitted": after["C"]})
+            if (name, ch) in held:
+                held_out.append({"scenario": name, "C_frozen": before["C"], "C_carried": after["C"]})
+            else:
+                fitted.append({"scenario": name, "C_frozen": before["C"], "C_fitted": after["C"]})
         ends = [carry.heart_at(change, zero, at[end][1]), carry.heart_at(change, fit.x, at[end][1])]
         frozen_e, carried_e = measure(oracles[end], ends)
         rows.append({"scenario": end, "w": at[end][1], "x": np.reshape(fit.x, (order, len(names))).round(4).tolist(), "evaluations": int(fit.nfev),
-                     "fitted": fitted, "end_C_frozen": frozen_e["C"], "end_C_carried": carried_e["C"],
+                     "fitted": fitted, "held_out": held_out, "end_C_frozen": frozen_e["C"], "end_C_carried": carried_e["C"],
                      "end_P_error_frozen": frozen_e["max_rel_error_P"], "end_P_error_carried": carried_e["max_rel_error_P"]})
         if check_dt is not None:
             target = scenario(heart, change)
@@ -156,7 +162,8 @@ def table(results: dict[str, list[dict]], command: str) -> str:
              "|---|---|---|---|---|"]
     for name, rows in results.items():
         for r in rows:
-            fitted = "; ".join(f"{p['scenario']} {100 * p['C_frozen']:.1f} → {100 * p['C_fitted']:.1f} %" for p in r["fitted"])
+            fitted = "; ".join([*(f"{p['scenario']} {100 * p['C_frozen']:.1f} → {100 * p['C_fitted']:.1f} %" for p in r["fitted"]),
+                                *(f"held out: {p['scenario']} {100 * p['C_frozen']:.1f} → {100 * p['C_carried']:.1f} %" for p in r["held_out"])])
             lines.append(f"| {name} | {r['scenario']} | {fitted} | {100 * r['end_C_frozen']:.1f} → {100 * r['end_C_carried']:.1f} % "
                          f"| {100 * r['end_P_error_frozen']:.1f} → {100 * r['end_P_error_carried']:.1f} % |")
         for r in rows:

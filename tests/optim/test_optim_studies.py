@@ -82,8 +82,9 @@ def test_smooth_maps_are_the_trained_ones_at_the_training_beats_and_stay_in_thei
 def test_smooth_maps_fit_the_inner_beats_and_a_large_ridge_keeps_the_trained_maps(tmp_path):
     """Against an oracle with other maps (the LO heart itself, one element), the carried maps fit
     the interior point's beat (from x = 0, least squares), and at second order the outer point's
-    too, and are carried to the end; with a ridge far above C² they stay the trained ones, so the
-    end's C is the frozen maps'. ``check_dt`` measures the end against the oracle's beat at that
+    too, and are carried to the end (at first order, the outer point is held out); with a ridge far
+    above C² they stay the trained ones, so the end's and the held-out point's C are the frozen
+    maps'. ``check_dt`` measures the end against the oracle's beat at that
     time step too, which moves each C by no more than the oracle's own change."""
     from scripts.smooth_maps import study
 
@@ -93,6 +94,9 @@ def test_smooth_maps_fit_the_inner_beats_and_a_large_ridge_keeps_the_trained_map
     (fitted,) = study("N", heart, NAMES, 0.0, scenarios=one, backend="multielement", check_dt=0.0005, **options)
     (kept,) = study("N", heart, NAMES, 1e8, scenarios=one, backend="multielement", **options)
     (point,) = fitted["fitted"]
+    (held,) = kept["held_out"]
+    assert held["scenario"] == "n0_0.85" and fitted["held_out"][0]["scenario"] == "n0_0.85", "order 1 holds the outer point out"
+    assert held["C_carried"] == pytest.approx(held["C_frozen"], rel=1e-3) and held["C_frozen"] > 0.02
     assert point["scenario"] == "n0_0.8" and fitted["w"] == pytest.approx((0.9 - heart.cell.n0) / (0.8 - heart.cell.n0))
     assert point["C_frozen"] > 0.02 and point["C_fitted"] < 1e-3, "the truth's maps are reachable at the interior point"
     assert fitted["x"][0][0] == pytest.approx(np.log(TRUTH.mu1 / heart.lo.mu1), rel=1e-2), "mu1"
@@ -102,7 +106,7 @@ def test_smooth_maps_fit_the_inner_beats_and_a_large_ridge_keeps_the_trained_map
     for k in ("frozen", "carried"):
         assert abs(check[f"{k}_C"] - fitted[f"end_C_{k}"]) <= 2.0 * check["oracle_C"], k
     (second,) = study("N", heart, NAMES, 0.0, order=2, scenarios=one, backend="multielement", **options)
-    assert [p["scenario"] for p in second["fitted"]] == ["n0_0.8", "n0_0.85"] and len(second["x"]) == 2
+    assert [p["scenario"] for p in second["fitted"]] == ["n0_0.8", "n0_0.85"] and len(second["x"]) == 2 and second["held_out"] == []
     assert all(p["C_frozen"] > 0.02 and p["C_fitted"] < 1e-3 for p in second["fitted"])
     assert kept["end_C_carried"] == pytest.approx(kept["end_C_frozen"], rel=1e-3) and kept["end_C_frozen"] == fitted["end_C_frozen"]
 
