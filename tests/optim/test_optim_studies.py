@@ -84,8 +84,8 @@ def test_smooth_maps_fit_the_inner_beats_and_a_large_ridge_keeps_the_trained_map
     the interior point's beat (from x = 0, least squares), and at second order the outer point's
     too, and are carried to the end (at first order, the outer point is held out); with a ridge far
     above C² they stay the trained ones, so the end's and the held-out point's C are the frozen
-    maps'. ``check_dt`` measures the end against the oracle's beat at that
-    time step too, which moves each C by no more than the oracle's own change."""
+    maps'. ``check_dt`` measures the end against the oracle's beat at that time step too, which
+    moves each C by no more than the oracle's own change."""
     from scripts.smooth_maps import study
 
     heart = dataclasses.replace(presets.normal(lo="table3"), lo=dataclasses.replace(TRUTH, mu1=0.08, mu2=0.24, delay=0.04))
