@@ -123,8 +123,9 @@ def retune(heart: Heart, scenarios: Mapping[str, Mapping[str, float]] = UNSEEN, 
     """One row per scenario: its name, C and the largest pointwise pressure error (``P_error_*``,
     as :func:`generalisation`'s) with ``heart``'s maps frozen and with the LO parameters ``names``
     refitted to that scenario's own oracle beat by :func:`optim.congruency.fit_maps` (MADS
-    ``budget`` evaluations from the frozen maps, then least squares, within :data:`~optim.congruency.ACTIVE_BOUNDS` and ``bounds``, which a name
-    outside them, e.g. a passive map's, needs), with the refitted values, and where each miss
+    ``budget`` evaluations from the frozen maps, then least squares, within
+    :data:`~optim.congruency.ACTIVE_BOUNDS` and ``bounds``, which a name outside them, e.g. a
+    passive map's, needs), with the refitted values, and where each miss
     sits (``where_frozen``, ``where_retuned``: the share of C² per window of the beat and the
     share a pure time shift removes, :func:`optim.diagnosis.decompose`) and the oracle's traces
     (``oracle``). The heart keeps its model (``Heart.elements``)."""

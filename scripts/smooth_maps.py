@@ -43,6 +43,7 @@ from lvenv import presets  # noqa: E402
 from lvenv.params import Heart  # noqa: E402
 from optim.congruency import ACTIVE_BOUNDS, MAP_NAMES, PASSIVE_NAMES, one_beat, passes_validation, passive_bounds, residuals  # noqa: E402
 from optim.studies import INTERIOR, OUTER, UNSEEN, _errors, _position, scenario  # noqa: E402
+from scripts.train_presets import HEARTS  # noqa: E402
 
 #: LO steps per beat, as `optim.studies` runs its scenarios.
 STEPS_PER_BEAT = 1000
@@ -104,7 +105,7 @@ def study(label: str, heart: Heart, names: tuple[str, ...], ridge: float, order:
     zero = np.zeros(order * len(names))
     for end, change in scenarios.items():
         inner = [INTERIOR[end], OUTER[end]]
-        points, held = inner[:order], inner[order:]
+        points = inner[:order]
         s_i = _position(heart, points[0][1])
         at = {name: (ch, _position(heart, ch) / s_i) for name, ch in [*inner, (end, change)]}
         oracles = {}
@@ -133,10 +134,10 @@ def study(label: str, heart: Heart, names: tuple[str, ...], ridge: float, order:
             bounds = (-np.inf, np.inf)
         fit = least_squares(residual, zero, bounds=bounds, diff_step=1e-4, max_nfev=60 * len(zero))
         fitted, held_out = [], []
-        for name, _ in inner:
+        for k, (name, _) in enumerate(inner):
             ch, f = at[name]
             before, after = measure(oracles[name], [carry.heart_at(ch, zero, f), carry.heart_at(ch, fit.x, f)])
-            if (name, ch) in held:
+            if k >= order:
                 held_out.append({"scenario": name, "C_frozen": before["C"], "C_carried": after["C"]})
             else:
                 fitted.append({"scenario": name, "C_frozen": before["C"], "C_fitted": after["C"]})
@@ -179,7 +180,7 @@ def table(results: dict[str, list[dict]], command: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--hearts", nargs="+", default=["normal", "heart_failure"], choices=["normal", "heart_failure"])
+    parser.add_argument("--hearts", nargs="+", default=list(HEARTS), choices=list(HEARTS))
     parser.add_argument("--model", default="series3", choices=sorted(presets.LO_MODELS), help="the LO heart model (default series3)")
     parser.add_argument("--passive", action="store_true", help="carry the passive maps too (nine maps)")
     parser.add_argument("--order", type=int, default=1, choices=(1, 2), help="the maps' change in the position: linear or quadratic (default 1)")
